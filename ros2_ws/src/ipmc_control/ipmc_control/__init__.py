@@ -1,0 +1,1 @@
+"""Hybrid inverse-feedforward + PID control of IPMC actuators (ipmc-ros)."""
