@@ -1,0 +1,355 @@
+"""Load and save IPMC records: ``t,u,y`` CSV files (s, V, mm) and rosbag2 folders.
+
+Pure core: NumPy and ``rosbags`` only, never ``rclpy``. Every refusal is a :class:`DataError`
+with one sentence that names the file and what is wrong with it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["DataError", "Record", "export_main", "load_record", "save_csv"]
+
+VOLTAGE_TOPIC = "/ipmc/voltage"
+DISPLACEMENT_TOPIC = "/ipmc/displacement"
+VOLTAGE_TYPE = "geometry_msgs/msg/Vector3Stamped"
+DISPLACEMENT_TYPE = "geometry_msgs/msg/PointStamped"
+CSV_COLUMNS = ("t", "u", "y")
+MIN_SAMPLES = 10
+MAX_JITTER = 0.05
+
+
+class DataError(ValueError):
+    """A data file or bag cannot be turned into a :class:`Record`; the message says why."""
+
+
+@dataclass(frozen=True, eq=False)
+class Record:
+    """One experiment: input voltage and tip displacement sampled at common instants.
+
+    Parameters
+    ----------
+    t_s : ndarray, shape (N,)
+        Sampling instants, s.
+    u_v : ndarray, shape (N,)
+        Applied voltage, V.
+    y_mm : ndarray, shape (N,)
+        Tip displacement, mm.
+    """
+
+    t_s: np.ndarray
+    u_v: np.ndarray
+    y_mm: np.ndarray
+
+    def __post_init__(self):
+        arrays = {}
+        for name in ("t_s", "u_v", "y_mm"):
+            arr = np.asarray(getattr(self, name), dtype=float)
+            if arr.ndim != 1:
+                raise DataError(f"Record.{name} must be 1-D, got shape {arr.shape}.")
+            arrays[name] = arr
+            object.__setattr__(self, name, arr)
+        lengths = {len(a) for a in arrays.values()}
+        if len(lengths) != 1:
+            desc = ", ".join(f"{k} has {len(v)}" for k, v in arrays.items())
+            raise DataError(f"Record arrays must have one length: {desc}.")
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    @property
+    def dt_s(self) -> float:
+        """Median sampling interval, s (NaN with fewer than 2 samples)."""
+        return float(np.median(np.diff(self.t_s))) if len(self) > 1 else float("nan")
+
+    @property
+    def rate_hz(self) -> float:
+        """Sampling rate, Hz (1 / :attr:`dt_s`)."""
+        return 1.0 / self.dt_s
+
+    def __repr__(self) -> str:
+        if len(self) > 1:
+            return f"Record(n={len(self)}, duration_s={self.t_s[-1] - self.t_s[0]:.6g}, " \
+                   f"rate_hz={self.rate_hz:.6g})"
+        return f"Record(n={len(self)})"
+
+
+def check_record(record: Record, *, source: str = "record", min_samples: int = MIN_SAMPLES,
+                 max_jitter: float = MAX_JITTER) -> Record:
+    """Raise :class:`DataError` unless ``record`` is finite, long enough and uniformly sampled.
+
+    Parameters
+    ----------
+    record : Record
+        The record to check.
+    source : str
+        What to call it in the message (a file name).
+    min_samples : int
+        Fewest samples accepted.
+    max_jitter : float
+        Largest accepted deviation of one sampling interval from the median interval, as a
+        fraction of the median interval. A missing sample (a gap) is an interval of about twice
+        the median: it is refused for any ``max_jitter`` below 1.
+
+    Returns
+    -------
+    Record
+        ``record`` itself.
+    """
+    n = len(record)
+    if n < min_samples:
+        raise DataError(f"{source} has too few samples: {n}, need at least {min_samples}.")
+    for name, unit in (("t_s", "s"), ("u_v", "V"), ("y_mm", "mm")):
+        arr = getattr(record, name)
+        bad = np.flatnonzero(~np.isfinite(arr))
+        if bad.size:
+            i = int(bad[0])
+            raise DataError(
+                f"{source} has {bad.size} non-finite (NaN or inf) value(s) in {name} ({unit}), "
+                f"the first at sample {i} (t = {record.t_s[i]:.6g} s).")
+    if n < 2:
+        return record
+    dt = np.diff(record.t_s)
+    if np.any(dt <= 0):
+        i = int(np.flatnonzero(dt <= 0)[0])
+        raise DataError(
+            f"{source} has unsorted or repeated time: t[{i + 1}] = {record.t_s[i + 1]:.9g} s "
+            f"does not follow t[{i}] = {record.t_s[i]:.9g} s.")
+    med = float(np.median(dt))
+    dev = np.abs(dt - med) / med
+    if np.any(dev > max_jitter):
+        i = int(np.argmax(dev > max_jitter))
+        kind = "a gap" if dt[i] > 1.5 * med else "an irregular interval"
+        raise DataError(
+            f"{source} has irregular time: {kind} of {dt[i]:.6g} s between t = "
+            f"{record.t_s[i]:.9g} s and {record.t_s[i + 1]:.9g} s, against a median interval "
+            f"of {med:.6g} s (tolerance {max_jitter:.0%}).")
+    return record
+
+
+def load_record(path, *, voltage_topic: str = VOLTAGE_TOPIC,
+                displacement_topic: str = DISPLACEMENT_TOPIC, min_samples: int = MIN_SAMPLES,
+                max_jitter: float = MAX_JITTER) -> Record:
+    """Load a record from a ``t,u,y`` CSV file or a rosbag2 folder (MCAP or sqlite3).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A CSV file with header ``t,u,y`` (s, V, mm; more columns are ignored), or a rosbag2
+        folder (or a single ``.mcap`` / ``.db3`` file) holding the two topics below.
+    voltage_topic : str
+        ``geometry_msgs/msg/Vector3Stamped`` topic; ``vector.x`` is the applied voltage, V.
+    displacement_topic : str
+        ``geometry_msgs/msg/PointStamped`` topic; ``point.x`` is the displacement, m (converted
+        to mm here).
+    min_samples : int
+        Fewest samples accepted.
+    max_jitter : float
+        Accepted deviation of a sampling interval from the median, a fraction of it.
+
+    Returns
+    -------
+    Record
+        For a bag, voltage and displacement samples are paired by header stamp and ``t_s``
+        counts from the first pair (t_s[0] = 0).
+
+    Raises
+    ------
+    DataError
+        NaN, unsorted or irregular time, too few samples, missing columns or topics, or an
+        unreadable file; the message is one sentence naming the file.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise DataError(f"{p} does not exist.")
+    if p.is_dir() or p.suffix in (".mcap", ".db3"):
+        record = _load_bag(p, voltage_topic, displacement_topic)
+    else:
+        record = _load_csv(p)
+    return check_record(record, source=str(p), min_samples=min_samples, max_jitter=max_jitter)
+
+
+def _load_csv(path: Path) -> Record:
+    try:
+        with path.open(newline="", encoding="utf-8") as fh:
+            rows = list(csv.reader(fh))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataError(f"{path} cannot be read as a CSV file: {exc}.") from None
+    if not rows:
+        raise DataError(f"{path} is empty; expected a header line 't,u,y' (s, V, mm).")
+    header = [h.strip() for h in rows[0]]
+    missing = [c for c in CSV_COLUMNS if c not in header]
+    if missing:
+        raise DataError(
+            f"{path} lacks column(s) {', '.join(missing)} in its header {','.join(header)!r}; "
+            f"expected a header line 't,u,y' (s, V, mm).")
+    cols = [header.index(c) for c in CSV_COLUMNS]
+    data = np.empty((len(rows) - 1, 3))
+    n = 0
+    for lineno, row in enumerate(rows[1:], start=2):
+        if not row or all(not cell.strip() for cell in row):
+            continue  # blank lines (a trailing newline) carry no sample
+        try:
+            data[n] = [float(row[c]) for c in cols]
+        except IndexError:
+            raise DataError(
+                f"{path} line {lineno} has {len(row)} field(s), fewer than the header's "
+                f"{len(header)}.") from None
+        except ValueError:
+            raise DataError(
+                f"{path} line {lineno} has a non-numeric value in {row!r}.") from None
+        n += 1
+    data = data[:n]
+    return Record(data[:, 0], data[:, 1], data[:, 2])
+
+
+def _load_bag(path: Path, voltage_topic: str, displacement_topic: str) -> Record:
+    # Imported here so that CSV users do not pay for rosbags.
+    from rosbags.rosbag2 import Reader
+    from rosbags.rosbag2.errors import ReaderError
+    from rosbags.typesys import Stores, get_typestore
+
+    if path.is_dir() and not (path / "metadata.yaml").exists():
+        raise DataError(
+            f"{path} is not a readable rosbag2 folder: it has no metadata.yaml (if its recorder "
+            f"was killed, run 'ipmc bag-recover {path}' first).")
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    wanted = {voltage_topic: VOLTAGE_TYPE, displacement_topic: DISPLACEMENT_TYPE}
+    samples: dict[str, dict[int, float]] = {voltage_topic: {}, displacement_topic: {}}
+    try:
+        with Reader(path) as reader:
+            conns = [c for c in reader.connections if c.topic in wanted]
+            found = {c.topic for c in conns}
+            missing = [t for t in wanted if t not in found]
+            if missing:
+                have = sorted({c.topic for c in reader.connections}) or ["none"]
+                raise DataError(
+                    f"{path} lacks topic(s) {', '.join(missing)}; it has {', '.join(have)}.")
+            for c in conns:
+                if c.msgtype != wanted[c.topic]:
+                    raise DataError(
+                        f"{path} topic {c.topic} has type {c.msgtype}, expected "
+                        f"{wanted[c.topic]}.")
+            duplicates = 0
+            for conn, _t_ns, raw in reader.messages(connections=conns):
+                msg = typestore.deserialize_cdr(raw, conn.msgtype)
+                stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+                value = msg.vector.x if conn.topic == voltage_topic else msg.point.x * 1e3
+                store = samples[conn.topic]
+                duplicates += stamp in store
+                store[stamp] = value
+    except DataError:
+        raise
+    except (ReaderError, OSError, KeyError, ValueError, AssertionError) as exc:
+        raise DataError(f"{path} cannot be read as a rosbag2 bag: {exc}".rstrip(".") + ".") \
+            from None
+    if duplicates:
+        raise DataError(f"{path} has {duplicates} message(s) repeating a header stamp already "
+                        f"seen on the same topic.")
+    return _pair(path, samples[voltage_topic], samples[displacement_topic],
+                 voltage_topic, displacement_topic)
+
+
+def _pair(path: Path, volts: dict[int, float], metres_mm: dict[int, float],
+          voltage_topic: str, displacement_topic: str) -> Record:
+    """Pair samples by stamp; unpaired samples are dropped at the ends only."""
+    for topic, store in ((voltage_topic, volts), (displacement_topic, metres_mm)):
+        if not store:
+            raise DataError(f"{path} has no messages on {topic}.")
+    common = sorted(volts.keys() & metres_mm.keys())
+    if not common:
+        raise DataError(f"{path} has no {voltage_topic} and {displacement_topic} samples with "
+                        f"the same header stamp.")
+    first, last = common[0], common[-1]
+    paired = set(common)
+    # A recording starts and stops between the two messages of one sampling instant; an
+    # unpaired sample inside the span means a message was lost.
+    for topic, store in ((voltage_topic, volts), (displacement_topic, metres_mm)):
+        inner = [s for s in store if first < s < last and s not in paired]
+        if inner:
+            other = displacement_topic if topic == voltage_topic else voltage_topic
+            raise DataError(
+                f"{path} has {len(inner)} {topic} sample(s) with no {other} sample of the same "
+                f"stamp, the first at t = {(min(inner) - first) * 1e-9:.6g} s.")
+    stamps = np.array(common, dtype=np.int64)
+    t_s = (stamps - stamps[0]) * 1e-9
+    return Record(t_s, np.array([volts[s] for s in common]),
+                  np.array([metres_mm[s] for s in common]))
+
+
+def save_csv(record: Record, path) -> Path:
+    """Write ``record`` as a ``t,u,y`` CSV file (s, V, mm), atomically.
+
+    The file is written beside its destination and renamed into place, so a crash leaves either
+    the old file or the complete new one.
+
+    Parameters
+    ----------
+    record : Record
+        The record to write.
+    path : str or os.PathLike
+        Destination file; parent folders are created.
+
+    Returns
+    -------
+    pathlib.Path
+        The written path.
+    """
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(f".{p.name}.tmp{os.getpid()}")
+    data = np.column_stack([record.t_s, record.u_v, record.y_mm])
+    try:
+        with tmp.open("w", encoding="utf-8", newline="") as fh:
+            fh.write(",".join(CSV_COLUMNS) + "\n")
+            # 1 ns in time; 10 significant digits in V and mm is far below the sensor's 0.04 mm.
+            np.savetxt(fh, data, fmt=("%.9f", "%.10g", "%.10g"), delimiter=",")
+            fh.flush()
+            os.fsync(fh.fileno())
+        tmp.replace(p)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return p
+
+
+def export_main(argv: list[str] | None = None) -> int:
+    """``ipmc export BAG --out FILE.csv``: write a bag's voltage and displacement as ``t,u,y``."""
+    parser = argparse.ArgumentParser(
+        prog="ipmc export",
+        description="Export a rosbag2 folder (MCAP or sqlite3) to a CSV file with columns "
+                    "t,u,y (s, V, mm); voltage and displacement samples are paired by header "
+                    "stamp and t counts from the first pair.")
+    parser.add_argument("bag", help="rosbag2 folder (or .mcap/.db3 file)")
+    parser.add_argument("--out", required=True, help="CSV file to write")
+    parser.add_argument("--voltage-topic", default=VOLTAGE_TOPIC,
+                        help=f"Vector3Stamped topic, vector.x in V (default {VOLTAGE_TOPIC})")
+    parser.add_argument("--displacement-topic", default=DISPLACEMENT_TOPIC,
+                        help=f"PointStamped topic, point.x in m (default {DISPLACEMENT_TOPIC})")
+    parser.add_argument("--min-samples", type=int, default=MIN_SAMPLES,
+                        help=f"fewest samples accepted (default {MIN_SAMPLES})")
+    parser.add_argument("--max-jitter", type=float, default=MAX_JITTER,
+                        help="accepted deviation of a sampling interval from the median, as a "
+                             f"fraction (default {MAX_JITTER})")
+    args = parser.parse_args(argv)
+    try:
+        record = load_record(args.bag, voltage_topic=args.voltage_topic,
+                             displacement_topic=args.displacement_topic,
+                             min_samples=args.min_samples, max_jitter=args.max_jitter)
+        out = save_csv(record, args.out)
+    except (DataError, OSError) as exc:
+        print(f"ipmc export: error: {exc}", file=sys.stderr)
+        return 1
+    print(f"ipmc export: wrote {len(record)} samples ({record.t_s[-1]:.3f} s at "
+          f"{record.rate_hz:.6g} Hz) to {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(export_main())
