@@ -220,6 +220,14 @@ def _load_bag(path: Path, voltage_topic: str, displacement_topic: str) -> Record
         raise DataError(
             f"{path} is not a readable rosbag2 folder: it has no metadata.yaml (if its recorder "
             f"was killed, run 'ipmc bag-recover {path}' first).")
+    if path.is_dir():
+        # ipmc_driver.bagio writes the split in progress in a sub-folder of the bag.
+        torn = sorted(f.name for d in path.iterdir() if d.is_dir()
+                      for f in d.iterdir() if f.suffix in (".mcap", ".db3"))
+        if torn:
+            raise DataError(
+                f"{path} has an unfinished split {torn[0]} (its recorder is still running or "
+                f"was killed; run 'ipmc bag-recover {path}' to keep what it holds).")
     typestore = get_typestore(Stores.ROS2_JAZZY)
     wanted = {voltage_topic: VOLTAGE_TYPE, displacement_topic: DISPLACEMENT_TYPE}
     samples: dict[str, dict[int, float]] = {voltage_topic: {}, displacement_topic: {}}
