@@ -363,8 +363,10 @@ class PID:
             the anti-windup then sees the saturation of the total.
         u_applied : float, optional
             Command actually applied when the loop is open (feedforward only, manual), V. The
-            integrator then tracks it through the back-calculation term, so closing the loop
-            later does not bump. It is clipped to the limits and returned.
+            integrator then only tracks it, ``I <- I + h / Tt * (u - v)``, so ``v`` converges
+            to it with time constant Tt and closing the loop later does not bump (with
+            ``antiwindup_strategy="none"`` the integrator is frozen instead). It is clipped to
+            the limits and returned.
 
         Returns
         -------
@@ -387,7 +389,12 @@ class PID:
         v = feedforward + p + self._i + d
         u = v if u_applied is None else u_applied
         u = self._u_max if u > self._u_max else (self._u_min if u < self._u_min else u)
-        self._i += h * (self._ki * e + self._kt * (u - v))
+        if u_applied is None:
+            self._i += h * (self._ki * e + self._kt * (u - v))
+        else:
+            # Tracking (manual) mode: the integrator follows the applied command only, so that
+            # v converges to it exactly and closing the loop does not bump (Astrom-Hagglund).
+            self._i += h * self._kt * (u - v)
         self._e, self._p, self._d, self._v, self._u = e, p, d, v, u
         self._y_prev = measurement
         return u

@@ -234,10 +234,11 @@ def test_u_applied_makes_integrator_track_open_loop_command():
     for _ in range(500):  # 5 s = 15 Tt
         u = pid.compute_command(1.0, 0.5, H, feedforward=0.4, u_applied=0.4)
     assert u == 0.4
-    # The unsaturated total has converged to the applied command, up to the integral's
-    # steady pull K e Tt / TI.
-    assert_allclose(pid.command_unsaturated, 0.4 + K * 0.5 * pid.tracking_time_constant_s / TI,
-                    rtol=1e-6)
+    # The unsaturated total has converged to the applied command.
+    assert_allclose(pid.command_unsaturated, 0.4, atol=1e-6)
+    frozen = PID(antiwindup_strategy="none")
+    frozen.compute_command(1.0, 0.5, H, u_applied=0.4)
+    assert frozen.i_term == 0.0
 
 
 def test_pid_alone_tracks_slow_sine_on_simulated_plant():
