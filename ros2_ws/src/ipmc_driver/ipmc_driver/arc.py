@@ -136,3 +136,13 @@ class ArcGeometry:
             x = self.d_mm - self.l2_mm * np.tan(np.arcsin(np.clip(y / self.l1_mm, -1.0, 1.0)))
         x = np.where(ok, x, np.nan)
         return float(x) if x.ndim == 0 else x
+
+    def reading_scalar(self, y_mm: float) -> float | None:
+        """Inverse of Eq. 1 for one displacement (mm); ``None`` where the beam misses the tip.
+
+        A fast path (no NumPy) for per-sample loops such as the rig emulator.
+        """
+        s = self.half_span_mm
+        if not -s <= y_mm < s:  # also False for NaN
+            return None
+        return self.d_mm - self.l2_mm * math.tan(math.asin(y_mm / self.l1_mm))

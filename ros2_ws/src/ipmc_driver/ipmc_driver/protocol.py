@@ -361,8 +361,9 @@ class DecoderStats:
     bad_crc : int
         Complete frames whose CRC did not match.
     truncated : int
-        Partial frames: a frame cut short, recognised because the next good frame starts inside
-        the span its header announced (or left pending by ``reset``).
+        Partial frames: a frame cut short, recognised because the next frame start (sync, known
+        type, matching length) lies inside the span its header announced, or left pending by
+        ``reset``. A failed frame with no frame start inside its span counts as ``bad_crc``.
     resyncs : int
         Times the decoder had to discard bytes before finding the next good frame.
     discarded_bytes : int
@@ -439,8 +440,11 @@ class FrameDecoder:
                 break
             crc_rx = buf[end - 2] | (buf[end - 1] << 8)
             if crc16_modbus(memoryview(buf)[pos + 2 : end - 2]) != crc_rx:
-                if self._pending_end is None:
-                    self._pending_end = self._base + end
+                if self._pending_end is not None:
+                    # A plausible frame start inside the span of an earlier failed candidate:
+                    # that one was cut short.
+                    stats.truncated += 1
+                self._pending_end = self._base + end
                 self._discard(1)
                 pos += 1
                 continue

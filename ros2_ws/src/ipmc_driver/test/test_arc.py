@@ -58,6 +58,14 @@ def test_inverse_round_trip_inside_range():
     assert_allclose(geo.compensate(x), y, rtol=0, atol=1e-9)
 
 
+def test_reading_scalar_matches_vectorised_inverse():
+    geo = ArcGeometry()
+    for y in (-10.0, -0.5, 0.0, 0.01, 7.3):
+        assert geo.reading_scalar(y) == pytest.approx(geo.reading(y), abs=1e-12)
+    assert geo.reading_scalar(geo.half_span_mm) is None
+    assert geo.reading_scalar(float("nan")) is None
+
+
 def test_inverse_outside_range_is_nan():
     geo = ArcGeometry()
     _, hi = geo.displacement_range_mm

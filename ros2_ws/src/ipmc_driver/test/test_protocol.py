@@ -200,6 +200,23 @@ def test_decoder_truncated_frame_counted_next_frame_recovered(keep):
     assert dec.stats.discarded_bytes == keep
 
 
+def test_decoder_consecutive_truncated_frames_each_counted():
+    stream = sample_frame(0) + sample_frame(1)[:8] + sample_frame(2)[:8] + sample_frame(3)
+    dec = FrameDecoder()
+    assert counters(dec.feed(stream)) == [0, 3]
+    assert (dec.stats.truncated, dec.stats.bad_crc, dec.stats.resyncs) == (2, 0, 1)
+
+
+def test_decoder_consecutive_bad_crcs_each_counted():
+    bad = [bytearray(sample_frame(i)) for i in (1, 2, 3)]
+    for b in bad:
+        b[-1] ^= 0x40
+    stream = sample_frame(0) + b"".join(bad) + sample_frame(4)
+    dec = FrameDecoder()
+    assert counters(dec.feed(stream)) == [0, 4]
+    assert (dec.stats.bad_crc, dec.stats.truncated) == (3, 0)
+
+
 def test_decoder_truncated_frame_split_across_feeds():
     stream = sample_frame(0) + sample_frame(1)[:9] + sample_frame(2)
     dec = FrameDecoder()
