@@ -1,0 +1,166 @@
+"""sim_plant: the simulated IPMC rig on the ROS graph (stands in when the rig is absent).
+
+Subscribes ``/ipmc/command`` (std_msgs/Float64, V); publishes ``/ipmc/voltage``
+(Vector3Stamped: x applied V, y requested V) and ``/ipmc/displacement`` (PointStamped, x in m)
+at ``rate_hz``, stamped with the sampling instant.
+
+Clocks (``clock_mode``):
+- ``realtime``: a wall-clock timer samples the plant at ``rate_hz``.
+- ``lockstep``: the plant owns time and publishes ``/clock``; after each sample it waits for the
+  next command (at most ``lockstep_timeout_s`` of wall time; not at all when nobody publishes
+  commands), so an experiment runs as fast as the graph answers. Other nodes set
+  ``use_sim_time:=true``.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+import rclpy
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import PointStamped, Vector3Stamped
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.clock import Clock, ClockType
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
+from rosgraph_msgs.msg import Clock as ClockMsg
+from std_msgs.msg import Float64
+
+from ipmc_driver.plant import EFFECTS, IpmcPlant, load_plant_params
+
+# Every sample matters to recorders and model fitting: reliable, deep enough for bursts.
+SAMPLE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
+                        reliability=QoSReliabilityPolicy.RELIABLE,
+                        durability=QoSDurabilityPolicy.VOLATILE)
+COMMAND_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
+                         reliability=QoSReliabilityPolicy.RELIABLE)
+CLOCK_MODES = ("realtime", "lockstep")
+
+
+def to_time_msg(t_s: float) -> Time:
+    sec = math.floor(t_s)
+    return Time(sec=int(sec), nanosec=int(round((t_s - sec) * 1e9)) % 1_000_000_000)
+
+
+class SimPlant(Node):
+    def __init__(self) -> None:
+        super().__init__("sim_plant")
+        ro = ParameterDescriptor(read_only=True)
+        self.declare_parameter("rate_hz", 100.0, ParameterDescriptor(
+            description="sample rate (Hz)", read_only=True))
+        self.declare_parameter("clock_mode", "realtime", ParameterDescriptor(
+            description="realtime | lockstep (publishes /clock)", read_only=True))
+        self.declare_parameter("lockstep_timeout_s", 0.2, ParameterDescriptor(
+            description="lockstep: longest wall-time wait for a command before stepping anyway"))
+        self.declare_parameter("params_file", "", ParameterDescriptor(
+            description="plant parameter YAML ('' = shipped default)", read_only=True))
+        self.declare_parameter("effects", [""], ParameterDescriptor(
+            description=f"optional plant effects: {', '.join(EFFECTS)}", read_only=True))
+        self.declare_parameter("seed", 0, ro)
+        self.declare_parameter("frame_id", "ipmc_clamp", ro)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        rate_hz = float(self.get_parameter("rate_hz").value)
+        mode = self.get_parameter("clock_mode").value
+        if rate_hz <= 0 or mode not in CLOCK_MODES:
+            raise ValueError(f"need rate_hz > 0 and clock_mode in {CLOCK_MODES}, "
+                             f"got {rate_hz} and '{mode}'")
+        self.lockstep = mode == "lockstep"
+        self.dt_s = 1.0 / rate_hz
+        effects = [e for e in self.get_parameter("effects").value if e]
+        params = load_plant_params(self.get_parameter("params_file").value or None)
+        self.plant = IpmcPlant(params, effects=effects, seed=self.get_parameter("seed").value,
+                               dt_s=self.dt_s)
+        self.frame_id = self.get_parameter("frame_id").value
+        self.command_v = 0.0
+        self.command_count = 0
+        self._count_at_sample = 0
+        self._sample_wall = 0.0
+
+        self.pub_voltage = self.create_publisher(Vector3Stamped, "/ipmc/voltage", SAMPLE_QOS)
+        self.pub_disp = self.create_publisher(PointStamped, "/ipmc/displacement", SAMPLE_QOS)
+        self.pub_clock = (self.create_publisher(ClockMsg, "/clock", 10)
+                          if self.lockstep else None)
+        self.create_subscription(Float64, "/ipmc/command", self._on_command, COMMAND_QOS)
+
+        wall = Clock(clock_type=ClockType.STEADY_TIME)
+        if self.lockstep:
+            self._t0 = 0.0
+            self.create_timer(0.0005, self._on_lockstep_tick, clock=wall)
+        else:
+            self._t0 = self.get_clock().now().nanoseconds * 1e-9
+            self.create_timer(self.dt_s, self._on_tick, clock=wall)
+        self.get_logger().info(
+            f"simulated IPMC at {rate_hz:g} Hz, clock {mode}, effects {effects or 'none'}")
+
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        for p in params:
+            if p.name == "lockstep_timeout_s" and not (p.value > 0):
+                return SetParametersResult(successful=False,
+                                           reason="lockstep_timeout_s must be > 0 seconds")
+        return SetParametersResult(successful=True)
+
+    def _on_command(self, msg: Float64) -> None:
+        if math.isfinite(msg.data):
+            self.command_v = float(msg.data)
+            self.command_count += 1
+        else:
+            self.get_logger().warn("ignoring a non-finite command", throttle_duration_sec=1.0)
+
+    def _on_tick(self) -> None:
+        self._publish_sample(*self.plant.step(self.command_v))
+
+    def _on_lockstep_tick(self) -> None:
+        if self.count_subscribers("/ipmc/displacement") == 0:
+            return  # time stands still until someone listens: no sample is lost at start-up
+        answered = self.command_count > self._count_at_sample
+        waited = time.monotonic() - self._sample_wall
+        nobody = self.count_publishers("/ipmc/command") == 0
+        timeout = self.get_parameter("lockstep_timeout_s").value
+        if answered or nobody or waited >= timeout:
+            self._publish_sample(*self.plant.step(self.command_v))
+
+    def _publish_sample(self, u_applied_v: float, y_mm: float) -> None:
+        # plant.t_s is already the next sample's time: this sample was taken one period earlier.
+        stamp = to_time_msg(self._t0 + self.plant.t_s - self.dt_s)
+        if self.pub_clock is not None:
+            self.pub_clock.publish(ClockMsg(clock=stamp))
+        v = Vector3Stamped()
+        v.header.stamp = stamp
+        v.header.frame_id = self.frame_id
+        v.vector.x = u_applied_v
+        v.vector.y = self.command_v
+        d = PointStamped()
+        d.header = v.header
+        d.point.x = y_mm * 1e-3
+        self.pub_voltage.publish(v)
+        self.pub_disp.publish(d)
+        self._count_at_sample = self.command_count
+        self._sample_wall = time.monotonic()
+
+
+def main(args: list[str] | None = None) -> None:
+    argv = sys.argv if args is None else args
+    if "-h" in argv or "--help" in argv:
+        print(__doc__)
+        print("usage: sim_plant [--ros-args -p rate_hz:=100.0 -p clock_mode:=realtime|lockstep "
+              "-p effects:=[creep] -p seed:=0 -p params_file:=FILE.yaml]")
+        return
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = SimPlant()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,135 @@
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from ipmc_driver.plant import EFFECTS, IpmcPlant, load_plant_params
+from ipmc_driver.signals import random_sine, sine
+
+
+def test_core_does_not_import_rclpy():
+    code = ("import sys, ipmc_driver.plant, ipmc_driver.characterize, ipmc_driver.signals; "
+            "print('rclpy' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+def test_voltage_is_hard_limited_to_3_v():
+    plant = IpmcPlant()
+    run = plant.run(np.array([5.0, -7.0, 2.5, 3.2]))
+    np.testing.assert_allclose(run.u_v, [3.0, -3.0, 2.5, 3.0])
+
+
+def test_nan_command_applies_zero_volts():
+    plant = IpmcPlant()
+    u_applied, _ = plant.step(float("nan"))
+    assert u_applied == 0.0
+
+
+def test_same_seed_same_record_and_different_seed_different_noise():
+    _, u = random_sine(10.0, 100.0, 2.5, seed=3)
+    a = IpmcPlant(seed=1).run(u)
+    b = IpmcPlant(seed=1).run(u)
+    c = IpmcPlant(seed=2).run(u)
+    np.testing.assert_array_equal(a.y_mm, b.y_mm)
+    np.testing.assert_array_equal(a.y_true_mm, c.y_true_mm)
+    assert np.any(a.y_mm != c.y_mm)
+
+
+def test_sensor_noise_and_resolution_are_as_configured():
+    params = load_plant_params()
+    _, u = sine(2.0, 0.3, 20.0)
+    run = IpmcPlant(seed=0).run(u)
+    q = params["resolution_mm"]
+    np.testing.assert_allclose(run.y_mm / q, np.round(run.y_mm / q), atol=1e-6)
+    err = run.y_mm - run.y_true_mm
+    expected = np.sqrt(params["noise_std_mm"] ** 2 + q ** 2 / 12)
+    assert 0.7 * expected < err.std() < 1.3 * expected
+
+
+def test_negative_voltage_bends_further_than_positive():
+    plus = IpmcPlant().run(np.full(300, 2.0)).y_true_mm.max()
+    minus = IpmcPlant().run(np.full(300, -2.0)).y_true_mm.min()
+    assert plus > 0 > minus
+    assert -minus > 1.2 * plus
+
+
+def test_response_lags_the_voltage_like_a_charging_double_layer():
+    # A step does not appear in full at once: charging takes tens of milliseconds.
+    y = IpmcPlant().run(np.full(100, -2.0)).y_true_mm
+    peak = y.min()
+    assert y[0] > 0.3 * peak  # first sample well short of the peak (both negative)
+    assert np.argmin(y) > 5
+
+
+def test_unknown_effect_is_refused_with_the_known_list():
+    with pytest.raises(ValueError, match="unknown effect 'humidity'.*creep"):
+        IpmcPlant(effects=["humidity"])
+    with pytest.raises(ValueError, match="effect 'creep' has no parameter"):
+        IpmcPlant(effects={"creep": {"speed": 1.0}})
+
+
+def test_all_effects_are_off_by_default():
+    u = np.full(3000, -2.0)
+    base = IpmcPlant().run(u).y_true_mm
+    np.testing.assert_array_equal(base, IpmcPlant(effects=()).run(u).y_true_mm)
+
+
+def hold(effects, u_v=-2.0, seconds=60.0):
+    return IpmcPlant(effects=effects).run(np.full(int(seconds * 100), u_v)).y_true_mm
+
+
+def test_creep_moves_a_sustained_response_slowly_in_either_direction():
+    base = hold(())
+    back = hold({"creep": {"gain_mm_per_v": -0.4, "tau_s": 20.0}})
+    forward = hold({"creep": {"gain_mm_per_v": 0.4, "tau_s": 20.0}})
+    d_back, d_fwd = back - base, forward - base
+    # At 1 s little has happened; by 60 s most of 0.8 mm (0.4 mm/V x 2 V) has.
+    assert abs(d_back[100]) < 0.1 and abs(d_back[-1]) > 0.6
+    assert d_back[-1] > 0 > d_fwd[-1]  # negative bend: back-relaxation moves towards zero
+
+
+def test_drift_loses_gain_over_minutes():
+    _, u = sine(2.0, 0.5, 600.0)
+    base = IpmcPlant().run(u).y_true_mm
+    drift = IpmcPlant(effects={"drift": {"gain_loss_per_min": 0.05,
+                                         "offset_mm_per_min": 0.0}}).run(u).y_true_mm
+    first, last = slice(0, 3000), slice(-3000, None)
+    assert np.ptp(drift[first]) > 0.95 * np.ptp(base[first])
+    ratio = np.ptp(drift[last]) / np.ptp(base[last])
+    assert 0.45 < ratio < 0.6  # 1 - 0.05/min x ~9.75 min
+
+
+def test_delay_shifts_the_response_by_the_configured_time():
+    _, u = random_sine(20.0, 100.0, 2.0, seed=1)
+    base = IpmcPlant().run(u).y_true_mm
+    late = IpmcPlant(effects={"delay": {"delay_s": 0.12}}).run(u).y_true_mm
+    np.testing.assert_allclose(late[12:], base[:-12], atol=1e-9)
+
+
+def test_dead_zone_ignores_small_voltages():
+    small = IpmcPlant(effects={"dead_zone": {"width_v": 0.5}}).run(np.full(200, 0.4))
+    assert np.all(small.y_true_mm == 0.0)
+    assert np.abs(IpmcPlant().run(np.full(200, 0.4)).y_true_mm).max() > 0.2
+
+
+def test_saturation_bounds_the_tip():
+    y = hold({"saturation": {"limit_mm": 2.0}}, u_v=-3.0, seconds=5.0)
+    assert np.abs(y).max() < 2.0
+    assert np.abs(hold((), u_v=-3.0, seconds=5.0)).max() > 3.0
+
+
+def test_effect_names_are_the_documented_ones():
+    assert EFFECTS == ("creep", "drift", "delay", "dead_zone", "saturation")
+    assert set(load_plant_params()["effects"]) == set(EFFECTS)
+
+
+def test_bad_parameter_file_fails_with_a_clear_message(tmp_path):
+    bad = tmp_path / "p.yaml"
+    bad.write_text("plant:\n  u_max_v: 3.0\n")
+    with pytest.raises(ValueError, match="'tau_charge_s' is missing"):
+        load_plant_params(bad)
+    bad.write_text("[1, 2")
+    with pytest.raises(ValueError, match="cannot read plant parameters"):
+        load_plant_params(bad)
