@@ -1,0 +1,178 @@
+"""recorder: write chosen topics to a rosbag2 folder (MCAP or sqlite3) with ``rosbags``.
+
+ros2cli/rosbag2 are not on PyPI, so this node stands in for ``ros2 bag record``; its bags are
+split rosbag2 folders that ``ros2 bag info/play`` of a full ROS install reads (see
+``ipmc_driver.bagio``).
+
+- Timestamps: each message is stored at its *receive time* on the node's clock (what
+  ``ros2 bag record`` does; with ``use_sim_time`` it is /clock time). The sampling instant stays
+  in the message's header stamp, which ``ipmc_driver.dataio.load_record`` pairs on.
+- Types come from the project's topic table (docs/interfaces.md); other topics are subscribed when
+  a publisher appears, with its type and its reliability.
+- Messages are taken raw (``raw=True``): the subscription hands over the publisher's CDR bytes,
+  written as they are, with no deserialise/serialise round trip per message.
+- SIGINT and SIGTERM close the bag cleanly; a SIGKILL loses at most the data since the last
+  flush (``flush_s``) after ``ipmc bag-recover``, at most the current split without it.
+"""
+
+from __future__ import annotations
+
+import importlib
+import signal
+import sys
+import time
+from pathlib import Path
+
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import (
+    QoSDurabilityPolicy,
+    QoSHistoryPolicy,
+    QoSProfile,
+    QoSReliabilityPolicy,
+)
+from rclpy.signals import SignalHandlerOptions
+
+from ipmc_driver.bagio import BagWriter
+
+DEFAULT_TOPICS = ["/ipmc/command", "/ipmc/voltage", "/ipmc/displacement", "/ipmc/reference"]
+# docs/interfaces.md: topic -> (type, publishers known to be RELIABLE)
+TOPIC_TABLE = {
+    "/ipmc/command": ("std_msgs/msg/Float64", True),
+    "/ipmc/voltage": ("geometry_msgs/msg/Vector3Stamped", True),
+    "/ipmc/displacement": ("geometry_msgs/msg/PointStamped", True),
+    "/ipmc/reference": ("geometry_msgs/msg/PointStamped", None),
+    "/ipmc/feedforward": ("geometry_msgs/msg/Vector3Stamped", None),
+    "/ipmc/predicted": ("geometry_msgs/msg/PointStamped", None),
+    "/ipmc/residual": ("geometry_msgs/msg/PointStamped", None),
+    "/diagnostics": ("diagnostic_msgs/msg/DiagnosticArray", None),
+    "/clock": ("rosgraph_msgs/msg/Clock", None),
+}
+STORAGES = ("mcap", "sqlite3")
+# Deep queue: a burst while a split is being closed must not overflow it.
+RELIABLE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=1000,
+                          reliability=QoSReliabilityPolicy.RELIABLE,
+                          durability=QoSDurabilityPolicy.VOLATILE)
+BEST_EFFORT_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=1000,
+                             reliability=QoSReliabilityPolicy.BEST_EFFORT,
+                             durability=QoSDurabilityPolicy.VOLATILE)
+TICK_S = 0.1
+
+
+def get_message(msgtype: str):
+    """The message class of ``'pkg/msg/Type'`` (rosidl_runtime_py is not on PyPI)."""
+    pkg, kind, name = msgtype.split("/")
+    return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
+
+
+class Recorder(Node):
+    def __init__(self) -> None:
+        super().__init__("recorder")
+        ro = dict(read_only=True)
+        self.declare_parameter("topics", list(DEFAULT_TOPICS), ParameterDescriptor(
+            description="topics to record", **ro))
+        self.declare_parameter("output", "", ParameterDescriptor(
+            description="bag folder to create ('' = ./ipmc_bag_<YYYYmmdd_HHMMSS>)", **ro))
+        self.declare_parameter("storage", "mcap", ParameterDescriptor(
+            description="rosbag2 storage: mcap | sqlite3", **ro))
+        self.declare_parameter("split_s", 60.0, ParameterDescriptor(
+            description="seconds per split file; a SIGKILL loses at most the current one", **ro))
+        self.declare_parameter("flush_s", 1.0, ParameterDescriptor(
+            description="seconds between pushes of buffered messages to the split file", **ro))
+
+        topics = [t for t in self.get_parameter("topics").value if t]
+        output = self.get_parameter("output").value or time.strftime("ipmc_bag_%Y%m%d_%H%M%S")
+        storage = self.get_parameter("storage").value
+        if storage not in STORAGES:
+            raise ValueError(f"parameter storage must be one of {STORAGES}, got {storage!r}")
+        if not topics:
+            raise ValueError("parameter topics is empty; nothing to record")
+
+        self.writer = BagWriter(Path(output).resolve(), storage=storage,
+                                split_s=self.get_parameter("split_s").value,
+                                flush_s=self.get_parameter("flush_s").value)
+        self._subs = {}
+        self._pending = []
+        for topic in topics:
+            msgtype, reliable = TOPIC_TABLE.get(topic, (None, None))
+            if msgtype and reliable:
+                self._subscribe(topic, msgtype, RELIABLE_QOS)
+            else:
+                self._pending.append(topic)  # type or reliability from its publishers
+        self.get_logger().info(
+            f"recording {', '.join(topics)} to {self.writer.path} ({storage}, split every "
+            f"{self.writer.split_s:g} s); bag time = receive time")
+        self._timer = self.create_timer(TICK_S, self._on_tick)
+
+    def _subscribe(self, topic: str, msgtype: str, qos: QoSProfile) -> None:
+        try:
+            msg_class = get_message(msgtype)
+            self.writer.add_topic(topic, msgtype)
+        except (ValueError, ImportError, AttributeError) as exc:
+            self.get_logger().error(f"not recording {topic}: {exc}")
+            return
+        self._subs[topic] = self.create_subscription(
+            msg_class, topic, lambda data, t=topic: self._on_message(t, data), qos,
+            raw=True)
+
+    def _on_message(self, topic: str, data: bytes) -> None:
+        self.writer.write(topic, self.get_clock().now().nanoseconds, data)
+
+    def _on_tick(self) -> None:
+        self.writer.tick()
+        for topic in list(self._pending):
+            infos = self.get_publishers_info_by_topic(topic)
+            if not infos:
+                continue
+            self._pending.remove(topic)
+            msgtype = infos[0].topic_type
+            # A reliable subscriber would not match a best-effort publisher: take the weaker.
+            reliable = all(i.qos_profile.reliability == QoSReliabilityPolicy.RELIABLE
+                           for i in infos)
+            self._subscribe(topic, msgtype, RELIABLE_QOS if reliable else BEST_EFFORT_QOS)
+
+    def destroy_node(self) -> None:
+        # Every exit path comes here: the bag is closed (final split + metadata.yaml) once.
+        if not self.writer.closed:
+            self.writer.close()
+            text = (f"closed {self.writer.path}: {self.writer.message_count} messages in "
+                    f"{len(self.writer.files)} file(s)")
+            if self.context.ok():
+                self.get_logger().info(text)
+            else:  # after SIGINT rclpy has shut the context down: /rosout is gone
+                print(f"[recorder] {text}", file=sys.stderr)
+        super().destroy_node()
+
+
+class _Terminated(Exception):
+    """Raised from the SIGTERM handler to leave spin() like SIGINT does."""
+
+
+def _on_sigterm(signum, frame):
+    raise _Terminated
+
+
+def main(args: list[str] | None = None) -> None:
+    # rclpy handles SIGINT; SIGTERM gets a handler of our own that unwinds spin() into the
+    # same finally. The node's timer wakes the executor every TICK_S, so it runs promptly.
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.SIGINT)
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    node = None
+    try:
+        node = Recorder()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException, _Terminated):
+        pass
+    except (ValueError, OSError) as exc:
+        print(f"recorder: error: {exc}", file=sys.stderr)
+        raise SystemExit(1) from None
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()
