@@ -98,7 +98,8 @@ class PID:
         ``"back_calculation"`` feeds ``(u - v) / Tt`` back into the integrator, where ``v`` is the
         unsaturated and ``u`` the applied command.
     tracking_time_constant : float or None
-        Tt, s (> 0). None: ``sqrt(ti_s * td_s)``, or ``ti_s`` when ``td_s`` is 0.
+        Tt, s (> 0). None or 0 (control_toolbox's convention): ``sqrt(ti_s * td_s)``, or
+        ``ti_s`` when ``td_s`` is 0.
 
     Notes
     -----
@@ -165,7 +166,7 @@ class PID:
         if strategy not in ANTIWINDUP_STRATEGIES:
             raise ControlParameterError(
                 f"antiwindup_strategy must be one of {ANTIWINDUP_STRATEGIES}, got {strategy!r}")
-        if tt is None:
+        if tt is None or tt == 0.0:  # 0: control_toolbox's "use the default rule"
             tt_eff = math.sqrt(ti_s * td_s) if td_s > 0 else ti_s
             tt = None
         else:
@@ -321,7 +322,8 @@ class PID:
         n : float, optional
             Derivative filter ratio N.
         tracking_time_constant : float, optional
-            Tt, s. If not given and it was never set explicitly, it follows ``sqrt(TI TD)``.
+            Tt, s; 0 returns to the default rule ``sqrt(TI TD)``. Not given: unchanged (an
+            explicit Tt stays, the default rule follows the new TI and TD).
         """
         k = self._k if k is None else k
         ti_s = self._ti if ti_s is None else ti_s

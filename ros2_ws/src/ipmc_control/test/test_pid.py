@@ -65,7 +65,11 @@ def test_from_parallel_equals_standard_form():
 
 def test_tracking_time_constant_default_without_derivative_is_ti():
     assert PID(td_s=0.0).tracking_time_constant_s == TI
-    assert PID(tracking_time_constant=0.2).tracking_time_constant_s == 0.2
+    pid = PID(tracking_time_constant=0.2)
+    assert pid.tracking_time_constant_s == 0.2
+    pid.set_gains(tracking_time_constant=0.0)  # 0: back to the default rule (control_toolbox)
+    assert pid.tracking_time_constant is None
+    assert_allclose(pid.tracking_time_constant_s, math.sqrt(TI * TD))
 
 
 def test_output_clipped_to_limits():
