@@ -7,9 +7,10 @@ import math
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from numpy.testing import assert_allclose
+
 from ipmc_control.hybrid import MODES, HybridController
 from ipmc_control.pid import PID, ControlParameterError
-from numpy.testing import assert_allclose
 
 H = 0.01
 

@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from ipmc_control.pid import PID, ControlParameterError
 from numpy.testing import assert_allclose
+
+from ipmc_control.pid import PID, ControlParameterError
 
 K, TI, TD, N = 1.2, 0.87, 0.13, 10.0
 H = 0.01

@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from numpy.testing import assert_allclose
+
 from ipmc_control.pid import ControlParameterError
 from ipmc_control.references import (
     KINDS,
@@ -16,7 +18,6 @@ from ipmc_control.references import (
     StepTrainReference,
     make_reference,
 )
-from numpy.testing import assert_allclose
 
 
 def test_constant_holds_value():
