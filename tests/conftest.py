@@ -1,0 +1,127 @@
+"""Fixtures for tests that cross packages and processes.
+
+Every test session gets its own DDS domain (ROS_DOMAIN_ID from the pid) on loopback only, and
+every process a test starts is stopped: SIGINT first, SIGKILL after a grace period, and the test
+learns whether the grace was enough.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+VENV_BIN = Path(sys.executable).parent
+GRACE_S = 2.0
+
+
+@pytest.fixture(scope="session")
+def ros_env() -> dict:
+    """Environment for child processes (and this one): a private domain on localhost."""
+    env = dict(os.environ)
+    # Domain IDs 1..100 are safe on Linux; the pid spreads concurrent sessions apart.
+    env["ROS_DOMAIN_ID"] = str(1 + os.getpid() % 100)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env["PYTHONUNBUFFERED"] = "1"
+    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
+    os.environ.update({k: env[k] for k in saved})
+    yield env
+    for k, v in saved.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+
+
+class Processes:
+    """The processes one test started; :meth:`stop` reports how long each took to exit."""
+
+    def __init__(self, env: dict, log_dir: Path):
+        self.env = env
+        self.log_dir = log_dir
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def start(self, name: str, argv: list[str], **popen) -> subprocess.Popen:
+        log = open(self.log_dir / f"{name}.log", "w")  # noqa: SIM115 - closed with the process
+        proc = subprocess.Popen(argv, env=self.env, stdout=log, stderr=subprocess.STDOUT,
+                                **popen)
+        proc._log = log  # type: ignore[attr-defined]
+        self.procs[name] = proc
+        return proc
+
+    def start_node(self, name: str, executable: str, params: dict | None = None
+                   ) -> subprocess.Popen:
+        argv = [str(VENV_BIN / executable), "--ros-args"]
+        for key, value in (params or {}).items():
+            argv += ["-p", f"{key}:={value}"]
+        return self.start(name, argv)
+
+    def log(self, name: str) -> str:
+        return (self.log_dir / f"{name}.log").read_text()
+
+    def stop(self, name: str, sig: int = signal.SIGINT) -> float:
+        """Send ``sig``; return seconds until exit (inf if SIGKILL was needed)."""
+        proc = self.procs.pop(name)
+        t0 = time.monotonic()
+        if proc.poll() is None:
+            proc.send_signal(sig)
+            try:
+                proc.wait(timeout=GRACE_S)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+                proc._log.close()
+                return float("inf")
+        proc._log.close()
+        return time.monotonic() - t0
+
+    def stop_all(self) -> dict[str, float]:
+        return {name: self.stop(name) for name in list(self.procs)}
+
+
+@pytest.fixture
+def processes(ros_env, tmp_path):
+    procs = Processes(ros_env, tmp_path)
+    yield procs
+    procs.stop_all()
+
+
+@pytest.fixture(scope="session")
+def rclpy_context(ros_env):
+    """An rclpy context of this test process, in the session's domain."""
+    rclpy = pytest.importorskip("rclpy")
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    yield context
+    rclpy.try_shutdown(context=context)
+
+
+def spin_until(node, predicate, timeout_s: float, context=None) -> bool:
+    """Spin ``node`` until ``predicate()`` is true or ``timeout_s`` passes; return the result."""
+    from rclpy.executors import SingleThreadedExecutor
+
+    executor = SingleThreadedExecutor(context=context or node.context)
+    executor.add_node(node)
+    deadline = time.monotonic() + timeout_s
+    try:
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            executor.spin_once(timeout_sec=0.02)
+        return bool(predicate())
+    finally:
+        executor.remove_node(node)
+
+
+__all__ = ["GRACE_S", "Processes", "spin_until"]
+
+
+@pytest.fixture
+def spin():
+    """The :func:`spin_until` helper, as a fixture."""
+    return spin_until
