@@ -15,10 +15,10 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import sys
 
 import numpy as np
-import yaml
 from scipy.optimize import least_squares
 
 from ipmc_driver.characterize import characterize, format_table, paper_row
@@ -33,7 +33,7 @@ FITTED = {
     "relax_growth_per_v": (0.01, 5.0),
     "bw_beta_per_v": (0.05, 3.0),
     "bw_gamma_per_v": (0.01, 2.0),
-    "hyst_weight": (0.05, 0.9),
+    "hyst_weight": (0.25, 0.9),  # keep a real hysteresis loop, not a pure lag
     "gain_pos_mm_per_v": (0.3, 5.0),
     "sat_pos_mm": (1.5, 8.0),
     "gain_neg_mm_per_v": (0.3, 5.0),
@@ -56,8 +56,13 @@ def residuals(x: np.ndarray, base: dict) -> np.ndarray:
     params["noise_std_mm"] = 0.0
     params["resolution_mm"] = 0.0
     records = characterize(params)
-    res = [math.log(r["range_mm"] / paper_row(r["amplitude_v"], r["frequency_hz"])[2])
-           for r in records]
+    res = []
+    for r in records:
+        lower, upper, rng = paper_row(r["amplitude_v"], r["frequency_hz"])
+        res.append(math.log(r["range_mm"] / rng))
+        # The limits matter less than the range (the paper's mean offset is not controlled).
+        res.append(0.4 * math.log(max(r["upper_mm"], 1e-3) / upper))
+        res.append(0.4 * math.log(max(-r["lower_mm"], 1e-3) / -lower))
     by = {(r["amplitude_v"], round(r["frequency_hz"], 4)): r for r in records}
     for amp in (2.0, 3.0):
         rows = [r for r in records if r["amplitude_v"] == amp]
@@ -92,11 +97,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  {k}: {params[k]}")
     if args.write:
         path = default_params_path()
-        doc = yaml.safe_load(path.read_text())
         text = path.read_text()
         for k in FITTED:
-            old = doc["plant"][k]
-            text = text.replace(f"  {k}: {old}", f"  {k}: {params[k]}", 1)
+            text = re.sub(rf"^(  {k}: )[0-9.e+-]+", rf"\g<1>{params[k]}", text, flags=re.M)
         path.write_text(text)
         print(f"wrote {path}")
     return 0
