@@ -1,0 +1,355 @@
+"""controller: the hybrid inverse-feedforward + PID loop of the paper (section 4) on the graph.
+
+Subscribes ``/ipmc/reference`` (PointStamped, x in m), ``/ipmc/displacement`` (PointStamped,
+x in m) and ``/ipmc/feedforward`` (Vector3Stamped, x in V); publishes ``/ipmc/command``
+(std_msgs/Float64, V, |u| <= 3 V) and ``/diagnostics``.
+
+- ``trigger:=timer`` (default): one command every ``1/rate_hz`` s of the node's clock (ROS time,
+  so with ``use_sim_time:=true`` it follows ``/clock`` of ``sim_plant`` in lock-step mode);
+  ``dt`` is the clock's. ``trigger:=measurement``: one command per displacement sample, ``dt``
+  from the samples' stamps (exact in lock-step: no race between ``/clock`` and the sample).
+- Gains ``k`` (V/mm), ``ti_s``, ``td_s`` (s), ``n``, ``tracking_time_constant`` (s, 0: default
+  ``sqrt(TI TD)``), the limits ``u_clamp_max``/``u_clamp_min`` (V) and ``mode`` (pid | inverse
+  | hybrid) can be changed at run time; invalid values are refused with the reason. Gain changes
+  are bumpless.
+- The feedforward is stale when older than ``feedforward_timeout_s`` on the node's clock: the
+  loop then runs PID alone (bumplessly), says so on ``/diagnostics`` and in the log, and returns
+  to the requested mode when feedforward messages come back.
+- Without a reference, or without a displacement younger than ``measurement_timeout_s`` when
+  feedback is needed, the command is 0 V and the controller state is reset.
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import sys
+import time
+from collections import deque
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PointStamped, Vector3Stamped
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.clock import Clock, ClockType
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy, qos_profile_sensor_data
+from rclpy.signals import SignalHandlerOptions
+from std_msgs.msg import Float64
+
+from ipmc_control.hybrid import HybridController, check_mode
+from ipmc_control.pid import PID, ControlParameterError
+
+COMMAND_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
+                         reliability=QoSReliabilityPolicy.RELIABLE)
+TRIGGERS = ("timer", "measurement")
+GAIN_PARAMS = ("k", "ti_s", "td_s", "n", "tracking_time_constant")
+LIMIT_PARAMS = ("u_clamp_min", "u_clamp_max")
+HARDWARE_ID = "ipmc"
+# A tick later than this many periods counts as a deadline miss (wall clock).
+MISS_FACTOR = 1.5
+
+
+def _stamp_s(msg) -> float:
+    return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+
+
+class Controller(Node):
+    def __init__(self) -> None:
+        super().__init__("controller")
+        d = ParameterDescriptor
+        self.declare_parameter("rate_hz", 100.0, d(
+            description="command rate with trigger 'timer', Hz", read_only=True))
+        self.declare_parameter("trigger", "timer", d(
+            description="timer: fixed rate on the node clock | measurement: one command per "
+                        "displacement sample", read_only=True))
+        self.declare_parameter("mode", "hybrid", d(description="pid | inverse | hybrid"))
+        self.declare_parameter("k", 1.2, d(description="proportional gain K, V/mm (paper Eq. 21)"))
+        self.declare_parameter("ti_s", 0.87, d(description="integral time TI, s (> 0)"))
+        self.declare_parameter("td_s", 0.13, d(description="derivative time TD, s (>= 0)"))
+        self.declare_parameter("n", 10.0, d(
+            description="derivative filter ratio N: filter time constant TD/N"))
+        self.declare_parameter("tracking_time_constant", 0.0, d(
+            description="back-calculation tracking time Tt, s; 0 = sqrt(TI TD)"))
+        self.declare_parameter("u_clamp_max", 3.0, d(description="upper command limit, V"))
+        self.declare_parameter("u_clamp_min", -3.0, d(description="lower command limit, V"))
+        self.declare_parameter("antiwindup_strategy", "back_calculation", d(
+            description="back_calculation | none", read_only=True))
+        self.declare_parameter("feedforward_timeout_s", 0.2, d(
+            description="feedforward older than this (node clock) -> PID alone, s"))
+        self.declare_parameter("measurement_timeout_s", 0.5, d(
+            description="displacement older than this (node clock) -> 0 V, s"))
+        self.declare_parameter("diagnostics_period_s", 1.0, d(
+            description="wall-clock period of /diagnostics, s", read_only=True))
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+        g = self.get_parameter
+        self.rate_hz = float(g("rate_hz").value)
+        self.trigger = g("trigger").value
+        if not self.rate_hz > 0 or self.trigger not in TRIGGERS:
+            raise ControlParameterError(f"need rate_hz > 0 and trigger in {TRIGGERS}, got "
+                                        f"{self.rate_hz} and {self.trigger!r}")
+        pid = PID(g("k").value, g("ti_s").value, g("td_s").value, n=g("n").value,
+                  u_clamp_max=g("u_clamp_max").value, u_clamp_min=g("u_clamp_min").value,
+                  antiwindup_strategy=g("antiwindup_strategy").value,
+                  tracking_time_constant=g("tracking_time_constant").value)
+        self.hybrid = HybridController(pid, mode=check_mode(g("mode").value))
+        self.ff_timeout_s = float(g("feedforward_timeout_s").value)
+        self.y_timeout_s = float(g("measurement_timeout_s").value)
+        self._sim_time = bool(g("use_sim_time").value)
+
+        # Latest inputs (mm, V) and their receive times on the node clock (s).
+        self._ref_mm: float | None = None
+        self._y_mm: float | None = None
+        self._y_rx_s = -math.inf
+        self._y_stamp_s: float | None = None
+        self._ff_v: float | None = None
+        self._ff_rx_s = -math.inf
+        self._last_t_s: float | None = None
+        self._last_wall: float | None = None
+        self._fallback = False
+        self._idle_reason = "starting"
+        # Loop statistics for /diagnostics and the benchmark.
+        self.ticks = 0
+        self.deadline_misses = 0
+        self.skipped_steps = 0
+        self.step_us = deque(maxlen=2000)
+        self._saturated = deque(maxlen=200)
+
+        self.pub_command = self.create_publisher(Float64, "/ipmc/command", COMMAND_QOS)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_subscription(PointStamped, "/ipmc/reference", self._on_reference,
+                                 qos_profile_sensor_data)
+        self.create_subscription(PointStamped, "/ipmc/displacement", self._on_displacement,
+                                 qos_profile_sensor_data)
+        self.create_subscription(Vector3Stamped, "/ipmc/feedforward", self._on_feedforward,
+                                 qos_profile_sensor_data)
+
+        if self.trigger == "timer":
+            self.create_timer(1.0 / self.rate_hz, self._on_tick)
+        # Diagnostics on the wall clock: they keep coming when the simulated clock stalls.
+        self.create_timer(float(g("diagnostics_period_s").value), self.publish_diagnostics,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.get_logger().info(
+            f"controller: mode {self.hybrid.mode}, K={pid.k} V/mm, TI={pid.ti_s} s, "
+            f"TD={pid.td_s} s, |u| <= {pid.u_clamp_max} V, trigger {self.trigger}")
+
+    # -- parameters -----------------------------------------------------------------------------
+    def _validate_parameters(self, params) -> SetParametersResult:
+        new = {p.name: p.value for p in params}
+        try:
+            if "mode" in new:
+                check_mode(new["mode"])
+            for name in ("feedforward_timeout_s", "measurement_timeout_s"):
+                if name in new and not (isinstance(new[name], float) and new[name] > 0):
+                    raise ControlParameterError(f"{name} must be > 0 s, got {new[name]!r}")
+            if any(n in new for n in GAIN_PARAMS + LIMIT_PARAMS):
+                # Try the whole new set on a scratch controller: all or nothing.
+                cur = {n: self.get_parameter(n).value for n in GAIN_PARAMS + LIMIT_PARAMS}
+                cur.update({n: v for n, v in new.items() if n in cur})
+                PID(cur["k"], cur["ti_s"], cur["td_s"], n=cur["n"],
+                    u_clamp_max=cur["u_clamp_max"], u_clamp_min=cur["u_clamp_min"],
+                    tracking_time_constant=cur["tracking_time_constant"])
+        except (ControlParameterError, TypeError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, params) -> None:
+        names = {p.name for p in params}
+        g = self.get_parameter
+        pid = self.hybrid.pid
+        if names & set(LIMIT_PARAMS):
+            pid.set_limits(g("u_clamp_min").value, g("u_clamp_max").value)
+        if names & set(GAIN_PARAMS):
+            pid.set_gains(g("k").value, g("ti_s").value, g("td_s").value, n=g("n").value,
+                          tracking_time_constant=g("tracking_time_constant").value)
+            self.get_logger().info(f"gains: K={pid.k} V/mm, TI={pid.ti_s} s, TD={pid.td_s} s, "
+                                   f"N={pid.n}, Tt={pid.tracking_time_constant_s:.3g} s")
+        if "mode" in names:
+            self.hybrid.mode = g("mode").value
+            self.get_logger().info(f"mode: {self.hybrid.mode}")
+        self.ff_timeout_s = float(g("feedforward_timeout_s").value)
+        self.y_timeout_s = float(g("measurement_timeout_s").value)
+        self._sim_time = bool(g("use_sim_time").value)
+
+    # -- inputs ---------------------------------------------------------------------------------
+    def _now_s(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _on_reference(self, msg: PointStamped) -> None:
+        if math.isfinite(msg.point.x):
+            self._ref_mm = msg.point.x * 1e3
+
+    def _on_feedforward(self, msg: Vector3Stamped) -> None:
+        if math.isfinite(msg.vector.x):
+            self._ff_v = float(msg.vector.x)
+            self._ff_rx_s = self._now_s()
+
+    def _on_displacement(self, msg: PointStamped) -> None:
+        if not math.isfinite(msg.point.x):
+            return
+        self._y_mm = msg.point.x * 1e3
+        self._y_rx_s = self._now_s()
+        if self.trigger == "measurement":
+            self._step(_stamp_s(msg), self._y_rx_s)
+
+    # -- the loop -------------------------------------------------------------------------------
+    def _on_tick(self) -> None:
+        now = self._now_s()
+        self._step(now, now)
+
+    def _step(self, t_s: float, now: float) -> None:
+        """One control step at sample time ``t_s`` (s); ``now`` is the node clock (s)."""
+        wall = time.perf_counter()
+        self._count_deadline(wall)
+        dt = (1.0 / self.rate_hz) if self._last_t_s is None else t_s - self._last_t_s
+        self._last_t_s = t_s
+        if not (0.0 < dt <= 10.0 / self.rate_hz):
+            # Clock jumped (sim time reset, pause): hold the command, restart timing.
+            self.skipped_steps += 1
+            self.pub_command.publish(Float64(data=self.hybrid.command))
+            return
+        ff_fresh = self._ff_v is not None and now - self._ff_rx_s <= self.ff_timeout_s
+        y_fresh = self._y_mm is not None and now - self._y_rx_s <= self.y_timeout_s
+        mode = self.hybrid.mode
+        needs_y = mode != "inverse" or not ff_fresh
+        if self._ref_mm is None or (needs_y and not y_fresh):
+            self._go_idle("no reference yet" if self._ref_mm is None
+                          else "no fresh displacement")
+            return
+        self._idle_reason = ""
+        y_mm = self._y_mm if self._y_mm is not None else self._ref_mm
+        u = self.hybrid.compute_command(self._ref_mm, y_mm, dt,
+                                        self._ff_v if ff_fresh else None)
+        self.pub_command.publish(Float64(data=u))
+        self.step_us.append((time.perf_counter() - wall) * 1e6)
+        self._saturated.append(self.hybrid.saturated)
+        self.ticks += 1
+        fallback = mode != "pid" and not ff_fresh
+        if fallback != self._fallback:
+            self._fallback = fallback
+            if fallback:
+                self.get_logger().warn(
+                    f"feedforward stale (> {self.ff_timeout_s} s): PID alone until it returns")
+            else:
+                self.get_logger().info(f"feedforward back: mode {mode}")
+            self.publish_diagnostics()
+
+    def _go_idle(self, reason: str) -> None:
+        if reason != self._idle_reason:
+            self.get_logger().warn(f"{reason}: command 0 V")
+            self._idle_reason = reason
+            self.hybrid.reset()
+        self.pub_command.publish(Float64(data=0.0))
+
+    def _count_deadline(self, wall: float) -> None:
+        if self._last_wall is not None and self.trigger == "timer" and not self._sim_time:
+            if wall - self._last_wall > MISS_FACTOR / self.rate_hz:
+                self.deadline_misses += 1
+        self._last_wall = wall
+
+    # -- diagnostics ----------------------------------------------------------------------------
+    def publish_diagnostics(self) -> None:
+        """Publish one DiagnosticArray: feedforward, measurement, saturation, loop."""
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [self._diag_feedforward(), self._diag_measurement(),
+                      self._diag_saturation(), self._diag_loop()]
+        self.pub_diag.publish(arr)
+
+    def _status(self, name: str, level: bytes, message: str, **values) -> DiagnosticStatus:
+        return DiagnosticStatus(
+            level=level, name=f"controller: {name}", message=message, hardware_id=HARDWARE_ID,
+            values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+
+    def _diag_feedforward(self) -> DiagnosticStatus:
+        age = self._now_s() - self._ff_rx_s
+        age_txt = f"{age:.3f}" if math.isfinite(age) else "never"
+        mode = self.hybrid.mode
+        if mode == "pid":
+            return self._status("feedforward", DiagnosticStatus.OK, "not used in mode pid",
+                                mode=mode, age_s=age_txt)
+        if self._fallback:
+            return self._status("feedforward", DiagnosticStatus.WARN,
+                                f"stale: PID alone instead of {mode}", mode=mode,
+                                active_mode="pid", age_s=age_txt,
+                                timeout_s=self.ff_timeout_s)
+        return self._status("feedforward", DiagnosticStatus.OK, f"fresh, mode {mode}",
+                            mode=mode, active_mode=self.hybrid.active_mode, age_s=age_txt,
+                            feedforward_v=f"{self.hybrid.feedforward_v:.4f}")
+
+    def _diag_measurement(self) -> DiagnosticStatus:
+        if self._idle_reason:
+            return self._status("measurement", DiagnosticStatus.ERROR,
+                                f"{self._idle_reason}: command 0 V")
+        age = self._now_s() - self._y_rx_s
+        return self._status("measurement", DiagnosticStatus.OK, "fresh",
+                            age_s=f"{age:.3f}" if math.isfinite(age) else "never")
+
+    def _diag_saturation(self) -> DiagnosticStatus:
+        frac = sum(self._saturated) / len(self._saturated) if self._saturated else 0.0
+        pid = self.hybrid.pid
+        level = DiagnosticStatus.WARN if frac > 0.5 else DiagnosticStatus.OK
+        return self._status("saturation", level, f"{100 * frac:.0f} % of recent commands "
+                            "at the limit", fraction=f"{frac:.3f}",
+                            u_clamp_max_v=pid.u_clamp_max, u_clamp_min_v=pid.u_clamp_min,
+                            command_v=f"{pid.command:.4f}", i_term_v=f"{pid.i_term:.4f}")
+
+    def _diag_loop(self) -> DiagnosticStatus:
+        us = sorted(self.step_us)
+        p50 = us[len(us) // 2] if us else math.nan
+        p99 = us[min(len(us) - 1, int(0.99 * len(us)))] if us else math.nan
+        miss = self.deadline_misses / self.ticks if self.ticks else 0.0
+        level = DiagnosticStatus.WARN if miss > 1e-3 else DiagnosticStatus.OK
+        return self._status("loop", level, f"{self.ticks} steps, {miss:.2%} deadline misses",
+                            rate_hz=self.rate_hz, trigger=self.trigger, ticks=self.ticks,
+                            deadline_misses=self.deadline_misses,
+                            skipped_steps=self.skipped_steps,
+                            rejected_steps=self.hybrid.pid.rejected_steps,
+                            step_p50_us=f"{p50:.1f}", step_p99_us=f"{p99:.1f}")
+
+    def destroy_node(self) -> None:
+        # Leave the actuator at rest if the graph still carries messages (best effort: after an
+        # external shutdown the context is gone; the driver's own command timeout covers that).
+        try:
+            self.pub_command.publish(Float64(data=0.0))
+        except Exception:  # noqa: BLE001 - any failure here must not mask the shutdown
+            pass
+        super().destroy_node()
+
+
+def _raise_keyboard_interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
+def main(args: list[str] | None = None) -> None:
+    argv = sys.argv if args is None else args
+    if "-h" in argv or "--help" in argv:
+        print(__doc__)
+        print("usage: controller [--ros-args -p mode:=pid|inverse|hybrid -p k:=1.2 -p ti_s:=0.87 "
+              "-p td_s:=0.13 -p rate_hz:=100.0 -p trigger:=timer|measurement "
+              "-p use_sim_time:=true]")
+        return
+    # rclpy's own SIGINT/SIGTERM handlers shut the context down under the executor: the last
+    # 0 V command can then no longer be sent, and a message being taken at that instant raises
+    # RuntimeError from take_message (exit code 1; seen here under load, also reported as
+    # ros/joint_state_publisher#117). Signals become KeyboardInterrupt instead, so the context
+    # is still up in destroy_node; spin wakes at least every diagnostics period to notice.
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    node = None
+    try:
+        node = Controller()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

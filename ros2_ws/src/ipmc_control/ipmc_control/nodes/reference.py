@@ -1,0 +1,162 @@
+"""reference: publishes the desired tip displacement on ``/ipmc/reference``.
+
+``/ipmc/reference`` is a PointStamped, ``point.x`` in metres (frame ``ipmc_clamp``), published
+every ``1/rate_hz`` s of the node's clock (ROS time: with ``use_sim_time:=true`` it follows
+``/clock``). The generator (``ipmc_control.references``) is chosen by ``kind``:
+
+- ``constant``: ``value_mm``;
+- ``sine``: ``amplitude_mm``, ``frequency_hz``, ``offset_mm``, ``phase_rad``;
+- ``random``: ``band_hz`` [low, high], ``range_mm`` [min, max], ``n_components``, ``period_s``,
+  ``seed`` (defaults: the paper's 0-0.7 Hz, -9..4 mm);
+- ``steps``: ``levels_mm``, ``hold_s``, ``repeat``;
+- ``file``: ``path`` (CSV with columns t, y in s, mm), ``repeat``.
+
+The reference's time starts at 0 on the first tick. Generator parameters can be changed at run
+time: the new generator is built first and a failure refuses the change with its reason; the
+time base continues.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import rclpy
+from geometry_msgs.msg import PointStamped
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
+
+from ipmc_control.pid import ControlParameterError
+from ipmc_control.references import KINDS, Reference, make_reference
+
+REFERENCE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
+                           reliability=QoSReliabilityPolicy.RELIABLE)
+# Parameter name -> (default, description); which ones each kind takes.
+GENERATOR_PARAMS = {
+    "value_mm": (4.0, "constant: displacement, mm"),
+    "amplitude_mm": (2.5, "sine: amplitude, mm"),
+    "frequency_hz": (1.0 / (2.0 * math.pi), "sine: frequency, Hz"),
+    "offset_mm": (0.0, "sine: mean, mm"),
+    "phase_rad": (0.0, "sine: phase at t = 0, rad"),
+    "band_hz": ([0.0, 0.7], "random: frequency band [low, high], Hz"),
+    "range_mm": ([-9.0, 4.0], "random: displacement range [min, max], mm"),
+    "n_components": (20, "random: number of sines"),
+    "period_s": (100.0, "random: repetition period, s"),
+    "seed": (0, "random: seed"),
+    "levels_mm": ([0.0, 2.0, 0.0, -2.0], "steps: levels, mm"),
+    "hold_s": (5.0, "steps: time per level, s"),
+    "repeat": (True, "steps/file: start again after the end"),
+    "path": ("", "file: CSV with columns t, y (s, mm)"),
+}
+KIND_PARAMS = {
+    "constant": ("value_mm",),
+    "sine": ("amplitude_mm", "frequency_hz", "offset_mm", "phase_rad"),
+    "random": ("band_hz", "range_mm", "n_components", "period_s", "seed"),
+    "steps": ("levels_mm", "hold_s", "repeat"),
+    "file": ("path", "repeat"),
+}
+
+
+def build_reference(kind: str, values: dict) -> Reference:
+    """Build the generator of ``kind`` from a name -> value dict of node parameters."""
+    if kind not in KINDS:
+        raise ControlParameterError(f"kind must be one of {KINDS}, got {kind!r}")
+    params = {name: values[name] for name in KIND_PARAMS[kind]}
+    for name in ("band_hz", "range_mm", "levels_mm"):
+        if name in params:
+            params[name] = [float(v) for v in params[name]]
+    if kind == "file" and not params["path"]:
+        raise ControlParameterError("kind 'file' needs the parameter path")
+    return make_reference(kind, **params)
+
+
+class ReferenceNode(Node):
+    def __init__(self) -> None:
+        super().__init__("reference")
+        self.declare_parameter("rate_hz", 100.0, ParameterDescriptor(
+            description="publication rate, Hz", read_only=True))
+        self.declare_parameter("frame_id", "ipmc_clamp", ParameterDescriptor(
+            description="frame of the reference point", read_only=True))
+        self.declare_parameter("kind", "sine", ParameterDescriptor(
+            description=" | ".join(KINDS)))
+        for name, (default, text) in GENERATOR_PARAMS.items():
+            self.declare_parameter(name, default, ParameterDescriptor(description=text))
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+        self.rate_hz = float(self.get_parameter("rate_hz").value)
+        if not self.rate_hz > 0:
+            raise ControlParameterError(f"rate_hz must be > 0, got {self.rate_hz}")
+        self.frame_id = self.get_parameter("frame_id").value
+        self.generator = build_reference(self.get_parameter("kind").value, self._values())
+        self._pending: Reference | None = None
+        self._t0_ns: int | None = None
+
+        self.pub = self.create_publisher(PointStamped, "/ipmc/reference", REFERENCE_QOS)
+        self.create_timer(1.0 / self.rate_hz, self._on_tick)
+        self.get_logger().info(
+            f"reference: {self.get_parameter('kind').value} at {self.rate_hz:g} Hz")
+
+    def _values(self, override: dict | None = None) -> dict:
+        values = {name: self.get_parameter(name).value for name in GENERATOR_PARAMS}
+        values.update(override or {})
+        return values
+
+    def _validate_parameters(self, params) -> SetParametersResult:
+        new = {p.name: p.value for p in params}
+        if not (set(new) & (set(GENERATOR_PARAMS) | {"kind"})):
+            return SetParametersResult(successful=True)
+        kind = new.get("kind", self.get_parameter("kind").value)
+        try:
+            self._pending = build_reference(kind, self._values(new))
+        except (ControlParameterError, TypeError, ValueError) as exc:
+            self._pending = None
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, params) -> None:
+        if self._pending is not None:
+            self.generator, self._pending = self._pending, None
+            self.get_logger().info(f"reference: now {self.get_parameter('kind').value}")
+
+    def _on_tick(self) -> None:
+        now = self.get_clock().now()
+        if self._t0_ns is None:
+            self._t0_ns = now.nanoseconds
+        t_s = (now.nanoseconds - self._t0_ns) * 1e-9
+        msg = PointStamped()
+        msg.header.stamp = now.to_msg()
+        msg.header.frame_id = self.frame_id
+        msg.point.x = self.generator(t_s) * 1e-3
+        self.pub.publish(msg)
+
+
+def main(args: list[str] | None = None) -> None:
+    argv = sys.argv if args is None else args
+    if "-h" in argv or "--help" in argv:
+        print(__doc__)
+        print("usage: reference [--ros-args -p kind:=sine -p amplitude_mm:=2.5 "
+              "-p frequency_hz:=0.159 -p rate_hz:=100.0 -p use_sim_time:=true]")
+        return
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = ReferenceNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except RuntimeError:
+        # rclpy's signal handler shuts the context down under the executor; a message taken
+        # at that instant raises RuntimeError from take_message (ros/joint_state_publisher#117).
+        if rclpy.ok():
+            raise
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()
