@@ -1,0 +1,136 @@
+"""Per-step compute time of the controller core, in process (no ROS): p50 / p99 / max.
+
+Cases, each timed one step at a time with ``time.perf_counter_ns`` in a closed loop on the
+simulated plant (the plant's own time is not counted):
+
+1. ``PID``: ``PID.compute_command``;
+2. ``hybrid (given u_ff)``: ``HybridController.compute_command`` with a feedforward value;
+3. ``inverse model + hybrid``: ``InverseStepper.step`` + ``HybridController.compute_command`` +
+   ``record_applied`` (what the in-process loop does each sample), when ``ipmc_model.narx`` is
+   available. The inverse model is fitted here on a plant excitation, or loaded with
+   ``--model FILE`` (``ipmc_model.persistence.load_model``).
+
+Goal (issue 5): p99 <= 200 us per step. Prints one table; not part of the pass/fail suite.
+
+    .venv/bin/python benchmarks/bench_controller.py [--steps 20000] [--model FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import math
+import os
+import time
+
+import numpy as np
+
+from ipmc_control.hybrid import HybridController
+from ipmc_control.pid import PID
+from ipmc_control.references import RandomSineReference
+from ipmc_driver.plant import IpmcPlant
+
+DT_S = 0.01
+
+
+def _stats(ns: list[int]) -> tuple[float, float, float]:
+    us = np.asarray(ns, dtype=float) / 1e3
+    return float(np.percentile(us, 50)), float(np.percentile(us, 99)), float(us.max())
+
+
+def _loop(step, n_steps: int) -> tuple[list[int], list[int]]:
+    """Closed loop on the plant; ``step(k, r_mm, y_mm) -> u_v`` is timed (wall and thread CPU
+    time, ns), the plant is not."""
+    plant = IpmcPlant(seed=0, dt_s=DT_S)
+    ref = RandomSineReference(range_mm=(-2.0, 2.0), seed=1)
+    r = ref.sample(n_steps * DT_S, 1.0 / DT_S)[1].tolist()
+    y = 0.0
+    wall, cpu = [], []
+    clock, cpu_clock = time.perf_counter_ns, time.thread_time_ns
+    gc.disable()  # a collection inside a step is the interpreter's jitter, not the controller's
+    try:
+        for k in range(n_steps):
+            c0 = cpu_clock()
+            t0 = clock()
+            u = step(k, r[k], y)
+            t1 = clock()
+            c1 = cpu_clock()
+            wall.append(t1 - t0)
+            cpu.append(c1 - c0)
+            _, y = plant.step(u)
+    finally:
+        gc.enable()
+    return wall, cpu
+
+
+def _inverse_model(path: str | None):
+    try:
+        from ipmc_model.narx import InverseNarxModel
+    except ImportError as exc:
+        return None, f"ipmc_model.narx not available ({exc})"
+    if path:
+        from ipmc_model.persistence import load_model
+        return load_model(path), f"loaded {path}"
+    # A quick identification on the plant: 40 s of random-sine voltage at 100 Hz.
+    plant = IpmcPlant(seed=2, dt_s=DT_S)
+    drive = RandomSineReference(band_hz=(0.0, 0.7), range_mm=(-2.5, 2.5), seed=3)
+    u = drive.sample(40.0, 1.0 / DT_S)[1]
+    run = plant.run(u)
+    t0 = time.perf_counter()
+    model = InverseNarxModel().fit(run.u_v, run.y_mm)
+    return model, f"fitted on 4000 plant samples in {time.perf_counter() - t0:.1f} s"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=20000, help="steps per case")
+    parser.add_argument("--model", help="inverse model file (default: fit one here)")
+    args = parser.parse_args(argv)
+    n = args.steps
+    rows = []
+
+    pid = PID()
+    rows.append(("PID", _loop(lambda k, r, y: pid.compute_command(r, y, DT_S), n)))
+
+    hyb = HybridController()
+    rows.append(("hybrid (given u_ff)",
+                 _loop(lambda k, r, y: hyb.compute_command(r, y, DT_S, 0.3 * r), n)))
+
+    model, how = _inverse_model(args.model)
+    if model is not None:
+        stepper = model.stepper()
+        ctl = HybridController()
+
+        def step(k, r, y):
+            u_ff = stepper.step(r)
+            u = ctl.compute_command(r, y, DT_S, u_ff)
+            stepper.record_applied(u)
+            return u
+
+        rows.append(("inverse model + hybrid", _loop(step, n)))
+        n_centers = getattr(model.regressor_, "n_centers_", "?")
+        print(f"inverse model: {how}; {n_centers} kernel centres")
+    else:
+        print(f"inverse model case skipped: {how}")
+
+    load = os.getloadavg()[0]
+    print(f"\nper-step compute time, {n} steps each, closed loop on IpmcPlant at 100 Hz; "
+          f"{os.cpu_count()} CPUs, load average {load:.1f}")
+    print("wall = perf_counter (includes preemption by other processes), "
+          "cpu = this thread's CPU time")
+    print(f"{'case':<26}{'wall p50':>10}{'wall p99':>10}{'wall max':>10}"
+          f"{'cpu p50':>10}{'cpu p99':>10}   (us)")
+    for name, (wall, cpu) in rows:
+        w50, w99, wmx = _stats(wall)
+        c50, c99, _ = _stats(cpu)
+        print(f"{name:<26}{w50:>10.1f}{w99:>10.1f}{wmx:>10.1f}{c50:>10.1f}{c99:>10.1f}")
+    worst_wall = max(_stats(w)[1] for _, (w, _c) in rows)
+    worst_cpu = max(_stats(c)[1] for _, (_w, c) in rows)
+    for label, value in (("wall", worst_wall), ("cpu", worst_cpu)):
+        verdict = "meets" if value <= 200.0 else "MISSES"
+        print(f"worst {label} p99 {value:.1f} us: {verdict} the 200 us goal")
+    return 0 if math.isfinite(worst_wall) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
