@@ -1,0 +1,378 @@
+"""Residual analysis of a model: correlation, spectrum, whiteness, and an online monitor.
+
+Pure NumPy/SciPy (no ROS). The conventions follow MATLAB's ``resid`` and sysidentpy's residual
+validation: the sample autocorrelation of the residual e and the cross-correlation of the input u
+with e, normalised to [-1, 1], with 95 % confidence bounds +-1.96 / sqrt(N) under the null
+hypothesis that e is white and independent of u. A good model leaves a residual whose ACF
+(lags >= 1) and CCF stay inside the bounds.
+
+For strongly autocorrelated signals (a free-run residual, a slowly varying signature) the
+simple bound is far too tight; :func:`correlation_test` uses Bartlett's formula for the variance
+of a sample correlation between two autocorrelated series, sum_k rho_e(k) rho_s(k) / N, which is
+what MATLAB's ``resid`` does for the CCF.
+
+:class:`ResidualMonitor` takes residual samples one at a time (from a 100 Hz loop) and says
+when the residual stops being white (Ljung-Box on a sliding window), i.e. when the model has
+gone stale (drift, dehydration).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import signal as sps
+from scipy import stats
+
+from ipmc_driver.validation import as_signal, same_length
+
+#: Two-sided 95 % quantile of the standard normal distribution.
+Z95 = float(stats.norm.ppf(0.975))
+
+
+def _xcorr(a: np.ndarray, b: np.ndarray, max_lag: int) -> np.ndarray:
+    """r_ab(k) = sum_t a_t b_{t+k} / (N sd_a sd_b) for k = -max_lag..max_lag (means removed)."""
+    n = a.size
+    a = a - a.mean()
+    b = b - b.mean()
+    den = n * a.std() * b.std()
+    if den == 0.0:
+        return np.zeros(2 * max_lag + 1)
+    nfft = 1 << int(np.ceil(np.log2(2 * n)))
+    full = np.fft.irfft(np.conj(np.fft.rfft(a, nfft)) * np.fft.rfft(b, nfft), nfft)
+    # full[k] = sum_t a_t b_{t+k}; negative k wrap to the end
+    r = np.concatenate([full[nfft - max_lag:], full[: max_lag + 1]]) if max_lag else full[:1]
+    return r / den
+
+
+def _check_lag(max_lag: int, n: int) -> int:
+    max_lag = int(max_lag)
+    if max_lag < 1 or max_lag >= n:
+        raise ValueError(f"max_lag must be in [1, {n - 1}] for {n} samples, got {max_lag}")
+    return max_lag
+
+
+@dataclass
+class Correlation:
+    """A correlation function with its confidence bound.
+
+    Attributes
+    ----------
+    lags : ndarray of int
+        Lags in samples.
+    values : ndarray
+        Normalised correlation at each lag, in [-1, 1].
+    bound : float or ndarray
+        95 % bound under the null hypothesis (white / independent); scalar or one per lag.
+    """
+
+    lags: np.ndarray
+    values: np.ndarray
+    bound: float | np.ndarray
+
+    def outside(self, skip_zero: bool = False) -> np.ndarray:
+        """Boolean mask of lags whose |value| exceeds the bound (lag 0 dropped if asked)."""
+        out = np.abs(self.values) > self.bound
+        if skip_zero:
+            out &= self.lags != 0
+        return out
+
+    def fraction_outside(self, skip_zero: bool = True) -> float:
+        """Share of lags (lag 0 excluded by default) outside the bound; ~0.05 if white."""
+        keep = self.lags != 0 if skip_zero else np.ones(self.lags.size, bool)
+        return float(np.mean(self.outside()[keep])) if keep.any() else 0.0
+
+
+def acf(e, max_lag: int = 25) -> Correlation:
+    """Sample autocorrelation of the residual ``e`` (N,) at lags 0..max_lag with +-1.96/sqrt(N).
+
+    As MATLAB ``resid`` / sysidentpy: normalised by the lag-0 value; lag 0 is 1 by definition.
+    """
+    e = as_signal("e", e, min_length=3)
+    max_lag = _check_lag(max_lag, e.size)
+    r = _xcorr(e, e, max_lag)[max_lag:]
+    return Correlation(np.arange(max_lag + 1), r, Z95 / np.sqrt(e.size))
+
+
+def ccf(u, e, max_lag: int = 25, bound: str = "simple") -> Correlation:
+    """Cross-correlation r_ue(k) = corr(u_t, e_{t+k}) at lags -max_lag..max_lag.
+
+    Positive lags: the input leads the residual (an effect of past inputs the model missed,
+    e.g. a transport delay); negative lags: the residual leads the input (feedback).
+
+    Parameters
+    ----------
+    u, e : array_like, shape (N,)
+        Input (V) and residual (mm).
+    max_lag : int
+        Largest lag in samples.
+    bound : {"simple", "bartlett"}
+        ``"simple"``: +-1.96/sqrt(N) (sysidentpy); ``"bartlett"``: +-1.96 sqrt(sum_k
+        rho_u(k) rho_e(k) / N), which accounts for a coloured input and residual (MATLAB
+        ``resid``).
+    """
+    u = as_signal("u", u, min_length=3)
+    e = as_signal("e", e, min_length=3)
+    same_length(u=u, e=e)
+    max_lag = _check_lag(max_lag, u.size)
+    r = _xcorr(u, e, max_lag)
+    if bound == "simple":
+        b = Z95 / np.sqrt(u.size)
+    elif bound == "bartlett":
+        b = _bartlett_bound(u, e, max_lag)
+    else:
+        raise ValueError(f"bound must be 'simple' or 'bartlett', got {bound!r}")
+    return Correlation(np.arange(-max_lag, max_lag + 1), r, b)
+
+
+def _bartlett_bound(a: np.ndarray, b: np.ndarray, max_lag: int) -> float:
+    ra = _xcorr(a, a, max_lag)
+    rb = _xcorr(b, b, max_lag)
+    var = max(float(np.sum(ra * rb)), 1.0) / a.size
+    return Z95 * float(np.sqrt(var))
+
+
+def correlation_test(e, s, max_lag: int | None = None) -> dict:
+    """Is the residual ``e`` correlated with a signature ``s``? Lag-0 test with Bartlett's bound.
+
+    Both series may be strongly autocorrelated (a free-run residual, a slow creep signature), so
+    the bound is 1.96 sqrt(sum_{|k| <= K} rho_e(k) rho_s(k) / N) rather than 1.96 / sqrt(N);
+    K = ``max_lag`` (default N // 4).
+
+    Returns
+    -------
+    dict
+        ``{"r": correlation, "bound": 95 % bound, "significant": |r| > bound,
+        "ratio": |r| / bound}``
+    """
+    e = as_signal("e", e, min_length=8)
+    s = as_signal("s", s, min_length=8)
+    same_length(e=e, s=s)
+    n = e.size
+    K = n // 4 if max_lag is None else _check_lag(max_lag, n)
+    if e.std() == 0.0 or s.std() == 0.0:
+        return {"r": 0.0, "bound": 1.0, "significant": False, "ratio": 0.0}
+    r = float(np.corrcoef(e, s)[0, 1])
+    b = _bartlett_bound(e, s, K)
+    return {"r": r, "bound": b, "significant": bool(abs(r) > b), "ratio": abs(r) / b}
+
+
+def spectrum(e, rate_hz: float, nperseg: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Power spectral density of ``e`` by Welch's method (``scipy.signal.welch``, Hann window).
+
+    Returns
+    -------
+    (f_hz, psd) : ndarrays
+        Frequencies (Hz) and PSD (units of e squared per Hz, e.g. mm^2/Hz).
+    """
+    e = as_signal("e", e, min_length=8)
+    if not rate_hz > 0:
+        raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
+    nper = min(e.size, 1024) if nperseg is None else int(nperseg)
+    return sps.welch(e - e.mean(), fs=float(rate_hz), nperseg=nper)
+
+
+def low_frequency_share(e, rate_hz: float, f_cut_hz: float) -> float:
+    """Share of the residual's power below ``f_cut_hz`` (Welch PSD); near the bandwidth share
+    2 f_cut / rate for white noise, near 1 for a slow (creep, drift) residual."""
+    f, p = spectrum(e, rate_hz, nperseg=min(as_signal("e", e).size, 4096))
+    total = float(np.sum(p))
+    return float(np.sum(p[f <= f_cut_hz]) / total) if total > 0 else 0.0
+
+
+def ljung_box(e, lags: int = 20, n_params: int = 0) -> dict:
+    """Ljung-Box portmanteau test of whiteness.
+
+    Q = N (N + 2) sum_{k=1}^{h} r_k^2 / (N - k), chi-squared with h - ``n_params`` degrees of
+    freedom under the null hypothesis "e is white".
+
+    Returns
+    -------
+    dict
+        ``{"q": Q, "dof": h - n_params, "p_value": p, "lags": h}``; a small p (< 0.05) rejects
+        whiteness.
+    """
+    e = as_signal("e", e, min_length=4)
+    h = _check_lag(lags, e.size)
+    r = _xcorr(e, e, h)[h + 1:]
+    n = e.size
+    q = float(n * (n + 2) * np.sum(r * r / (n - np.arange(1, h + 1))))
+    dof = max(h - int(n_params), 1)
+    return {"q": q, "dof": dof, "p_value": float(stats.chi2.sf(q, dof)), "lags": h}
+
+
+def whiteness_summary(e, u=None, max_lag: int = 25) -> dict:
+    """One dict of the residual tests: RMS, ACF/CCF shares outside the 95 % bounds, Ljung-Box.
+
+    ``u`` (the input) adds the CCF; every value is a plain float (JSON-ready).
+    """
+    e = as_signal("e", e, min_length=max_lag + 2)
+    out = {"rms": float(np.sqrt(np.mean(e * e))), "samples": int(e.size)}
+    out["acf_outside"] = acf(e, max_lag).fraction_outside()
+    lb = ljung_box(e, max_lag)
+    out["ljung_box_q"], out["ljung_box_p"] = lb["q"], lb["p_value"]
+    if u is not None:
+        out["ccf_outside"] = ccf(u, e, max_lag).fraction_outside(skip_zero=False)
+    return out
+
+
+@dataclass
+class MonitorStatus:
+    """What :meth:`ResidualMonitor.update` says after a sample.
+
+    Attributes
+    ----------
+    level : int
+        0 OK, 1 WARN (latest check not white), 2 STALE (``patience`` checks in a row not
+        white); ``diagnostic_msgs/DiagnosticStatus`` levels OK / WARN / ERROR.
+    message : str
+        One sentence for ``DiagnosticStatus.message``.
+    white : bool or None
+        Result of the latest whiteness check; None before the window is full.
+    p_value : float
+        Ljung-Box p-value of the latest check (NaN before the first).
+    rms : float
+        RMS of the residual in the window (units of the residual).
+    mean : float
+        Mean of the residual in the window (a bias: offset drift).
+    samples : int
+        Samples seen since the last reset.
+    """
+
+    level: int
+    message: str
+    white: bool | None
+    p_value: float
+    rms: float
+    mean: float
+    samples: int
+
+
+class ResidualMonitor:
+    """Streaming whiteness check of a model residual: flags when the model goes stale.
+
+    Keeps the last ``window`` residual samples; every ``check_every`` samples (once the window
+    is full) it runs a Ljung-Box test on them (``lags`` lags, level ``alpha``) and a bias test
+    (|mean| > 1.96 sd / sqrt(window / (1 + 2 sum_k r_k)), the mean's bound under the window's
+    own autocorrelation). One failed check gives WARN; ``patience`` failed checks in a row give
+    STALE; one passed check returns to OK.
+
+    Feed it the one-step residual (measured - predicted, as on ``/ipmc/residual``) decimated
+    to the model's bandwidth if the sample rate is far above it (``decimate``): at 100 Hz a
+    one-step residual of a good model is close to white, a stale one (drift) is not.
+
+    Parameters
+    ----------
+    window : int
+        Samples in the sliding window (after decimation).
+    lags : int
+        Ljung-Box lags h.
+    alpha : float
+        Test level (0.01: one false WARN in ~100 checks on a white residual).
+    check_every : int
+        Samples between checks (after decimation).
+    patience : int
+        Consecutive failed checks before STALE.
+    decimate : int
+        Keep every ``decimate``-th sample.
+
+    Examples
+    --------
+    >>> mon = ResidualMonitor(window=400, lags=20)
+    >>> for e_mm in residual_stream:            # doctest: +SKIP
+    ...     status = mon.update(e_mm)
+    ...     if status.level == 2:
+    ...         publish_stale(status.message)
+    """
+
+    def __init__(self, window: int = 500, lags: int = 20, alpha: float = 0.01,
+                 check_every: int = 50, patience: int = 3, decimate: int = 1):
+        if int(window) < 20:
+            raise ValueError(f"window must be >= 20 samples, got {window}")
+        if not 1 <= int(lags) < int(window) // 2:
+            raise ValueError(f"lags must be in [1, window/2), got {lags} for window {window}")
+        if not 0.0 < float(alpha) < 0.5:
+            raise ValueError(f"alpha must be in (0, 0.5), got {alpha}")
+        if int(check_every) < 1 or int(patience) < 1 or int(decimate) < 1:
+            raise ValueError("check_every, patience and decimate must be integers >= 1, got "
+                             f"{check_every}, {patience}, {decimate}")
+        self.window = int(window)
+        self.lags = int(lags)
+        self.alpha = float(alpha)
+        self.check_every = int(check_every)
+        self.patience = int(patience)
+        self.decimate = int(decimate)
+        self._q_crit = float(stats.chi2.isf(self.alpha, self.lags))
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the history (after a model update)."""
+        self._buf: deque[float] = deque(maxlen=self.window)
+        self._n_raw = 0
+        self._since_check = 0
+        self._failed = 0
+        self._status = MonitorStatus(0, "collecting residual samples", None, float("nan"),
+                                     float("nan"), float("nan"), 0)
+
+    @property
+    def status(self) -> MonitorStatus:
+        """The latest status."""
+        return self._status
+
+    @property
+    def stale(self) -> bool:
+        """True when the residual has failed ``patience`` checks in a row."""
+        return self._status.level == 2
+
+    def update(self, e) -> MonitorStatus:
+        """Add one residual sample (a float, units of the residual); return the status.
+
+        A non-finite sample is skipped (a dropped measurement must not poison the window).
+        """
+        self._n_raw += 1
+        e = float(e)
+        if not np.isfinite(e) or (self._n_raw - 1) % self.decimate:
+            return self._status
+        self._buf.append(e)
+        self._since_check += 1
+        if len(self._buf) == self.window and self._since_check >= self.check_every:
+            self._since_check = 0
+            self._check()
+        else:
+            s = self._status
+            self._status = MonitorStatus(s.level, s.message, s.white, s.p_value, s.rms,
+                                         s.mean, self._n_raw)
+        return self._status
+
+    def update_many(self, e) -> MonitorStatus:
+        """Add several samples in order; return the final status."""
+        for v in np.asarray(e, dtype=float).reshape(-1):
+            self.update(v)
+        return self._status
+
+    def _check(self) -> None:
+        x = np.fromiter(self._buf, float, len(self._buf))
+        n = x.size
+        mean = float(x.mean())
+        rms = float(np.sqrt(np.mean(x * x)))
+        r = _xcorr(x, x, self.lags)[self.lags + 1:]
+        q = float(n * (n + 2) * np.sum(r * r / (n - np.arange(1, self.lags + 1))))
+        p = float(stats.chi2.sf(q, self.lags))
+        # Bias: the mean's bound with the window's own autocorrelation (effective sample size).
+        n_eff = n / max(1.0 + 2.0 * float(np.sum(np.clip(r, 0.0, None))), 1.0)
+        sd = float(x.std())
+        biased = sd > 0 and abs(mean) > Z95 * sd / np.sqrt(n_eff) and abs(mean) > 0.5 * sd
+        white = q <= self._q_crit and not biased
+        self._failed = 0 if white else self._failed + 1
+        if white:
+            level, msg = 0, f"residual white (Ljung-Box p = {p:.3g}), rms {rms:.4g}"
+        else:
+            why = f"Ljung-Box p = {p:.3g}" + (f", bias {mean:.4g}" if biased else "")
+            if self._failed >= self.patience:
+                level = 2
+                msg = (f"model stale: residual not white in {self._failed} checks in a row "
+                       f"({why}), rms {rms:.4g}")
+            else:
+                level, msg = 1, f"residual not white ({why}), rms {rms:.4g}"
+        self._status = MonitorStatus(level, msg, white, p, rms, mean, self._n_raw)
