@@ -10,12 +10,13 @@ import time
 
 import numpy as np
 import pytest
-from ipmc_driver.bagio import BagError, BagWriter, recover_bag, recover_main
-from ipmc_driver.dataio import DataError, load_record
 from numpy.testing import assert_allclose
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 from ruamel.yaml import YAML
+
+from ipmc_driver.bagio import BagError, BagWriter, recover_bag, recover_main
+from ipmc_driver.dataio import DataError, load_record
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 T0_NS = 1_700_000_000_000_000_000

@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from ipmc_driver.dataio import DataError, Record, export_main, load_record, save_csv
 from numpy.testing import assert_allclose
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
+
+from ipmc_driver.dataio import DataError, Record, export_main, load_record, save_csv
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 T0_NS = 1_700_000_000_123_000_000
