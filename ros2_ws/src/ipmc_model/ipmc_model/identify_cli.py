@@ -1,0 +1,274 @@
+"""``ipmc identify`` and ``ipmc evaluate``: identify a model from a record, score it on another.
+
+Records are ``t,u,y`` CSV files (s, V, mm) or rosbag2 folders, read by
+``ipmc_driver.dataio.load_record``. Every printed error says whether it is one-step or
+free-run; free runs start from the first ``max_lag`` measured samples, which are skipped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .metrics import score
+from .narx import PAPER_C, PAPER_SIGMA, InverseNarxModel, NarxModel
+from .persistence import load_model, save_model
+from .play import PrandtlIshlinskii
+from .tuning import DEFAULT_CYCLES, DEFAULT_SOURCES, identify_lssvm_narx
+
+
+def _load(path: str):
+    from ipmc_driver.dataio import load_record
+
+    return load_record(path)
+
+
+def _budget(text: str) -> tuple[int, int]:
+    try:
+        s, c = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"budget must look like SOURCESxCYCLES (e.g. 10x10, paper 100x100), got {text!r}"
+        ) from None
+    if s < 2 or c < 1:
+        raise argparse.ArgumentTypeError(f"budget needs >= 2 sources and >= 1 cycle: {text!r}")
+    return s, c
+
+
+def _progress(cycle: int, n_cycles: int, best: float, nfev: int) -> None:
+    print(f"  ABC cycle {cycle}/{n_cycles}: best validation RMSE {best:.4g} "
+          f"({nfev} fits)", file=sys.stderr, flush=True)
+
+
+def evaluate_model(model, u, y) -> dict:
+    """Free-run and one-step metrics of a model on one record.
+
+    For a forward model the target is y (mm); for an inverse model it is u (V). The free run
+    starts from the first ``max_lag`` measured samples (skipped in the metrics).
+
+    Returns
+    -------
+    dict
+        ``{"free_run": {...}, "one_step": {...}, "units": "mm" | "V", "samples_skipped": int}``
+        plus ``"free_run_output"`` and ``"one_step_output"`` arrays (drop them before JSON).
+    """
+    if isinstance(model, PrandtlIshlinskii):
+        y_free = model.simulate(u)
+        y_one = y_free  # no output feedback: one-step equals free run
+        skip, target, units = 0, y, "mm"
+    elif isinstance(model, InverseNarxModel):
+        skip = model.max_lag_
+        y_free = model.simulate(y, u[:skip])
+        y_one = model.predict(y, u)
+        target, units = u, "V"
+    elif isinstance(model, NarxModel):
+        skip = model.max_lag_
+        y_free = model.simulate(u, y[:skip])
+        y_one = model.predict(u, y)
+        target, units = y, "mm"
+    else:
+        raise ValueError(f"cannot evaluate an object of type {type(model).__name__}")
+    if np.all(np.isfinite(y_free)):
+        free = score(target, y_free, skip)
+    else:
+        free = {k: float("inf") for k in ("rmse", "nrmse", "max_abs")}
+        free["fit_percent"] = float("-inf")
+    return {
+        "free_run": free,
+        "one_step": score(target, y_one, skip),
+        "units": units,
+        "samples_skipped": int(skip),
+        "free_run_output": y_free,
+        "one_step_output": y_one,
+    }
+
+
+def _print_metrics(result: dict, label: str) -> None:
+    units = result["units"]
+    for mode in ("free_run", "one_step"):
+        m = result[mode]
+        name = mode.replace("_", "-")
+        print(f"{label} {name}: RMSE {m['rmse']:.4f} {units}, NRMSE {m['nrmse']:.4f}, "
+              f"fit {m['fit_percent']:.2f} %, max |error| {m['max_abs']:.4f} {units}")
+    print(f"({result['samples_skipped']} initial samples skipped: the model's lags)")
+
+
+def _identify_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="ipmc identify",
+        description="Identify an IPMC model (PI or LSSVM-NARX, forward or inverse) from a record.",
+    )
+    p.add_argument("--data", required=True, help="t,u,y CSV file (s, V, mm) or rosbag2 folder")
+    p.add_argument("--model", required=True, choices=("pi", "lssvm-narx"))
+    p.add_argument("--out", required=True, help="model file to write (.json, + .npz beside it)")
+    p.add_argument("--inverse", action="store_true",
+                   help="lssvm-narx: identify the inverse model u = h(y, past u) (Eq. 19)")
+    p.add_argument("--tune", choices=("abc", "none"), default="abc",
+                   help="lssvm-narx: tune C and sigma by ABC (default) or use --C/--sigma")
+    p.add_argument("--budget", type=_budget, default=(DEFAULT_SOURCES, DEFAULT_CYCLES),
+                   help=f"ABC budget SOURCESxCYCLES (default {DEFAULT_SOURCES}x{DEFAULT_CYCLES}"
+                        ", about 210 fits; the paper's is 100x100, about 20000)")
+    p.add_argument("--objective", choices=("free-run", "one-step"), default="free-run",
+                   help="tuning objective: validation RMSE of the free run (default) or of the "
+                        "one-step prediction")
+    p.add_argument("--C", type=float, default=PAPER_C, help=f"LSSVM C (default {PAPER_C})")
+    p.add_argument("--sigma", type=float, default=PAPER_SIGMA,
+                   help=f"LSSVM sigma, standardised units (default {PAPER_SIGMA})")
+    p.add_argument("--input-lags", type=int, default=3, help="m (default 3)")
+    p.add_argument("--output-lags", type=int, default=3, help="n (default 3)")
+    p.add_argument("--lag-step", type=int, default=1, help="spacing of the lags in samples")
+    p.add_argument("--pi-method", choices=("nnls", "pso"), default="nnls",
+                   help="pi: thresholds on a grid + NNLS (default, invertible) or PSO (paper)")
+    p.add_argument("--operators", type=int, default=10, help="pi: number of play operators")
+    p.add_argument("--seed", type=int, default=0)
+    return p
+
+
+def identify_main(argv: list[str] | None = None) -> int:
+    """Entry point of ``ipmc identify``."""
+    args = _identify_parser().parse_args(argv)
+    try:
+        rec = _load(args.data)
+        u, y = rec.u_v, rec.y_mm
+        meta = {"data": str(args.data), "samples": int(u.size), "rate_hz": float(rec.rate_hz)}
+        if args.model == "pi":
+            if args.inverse:
+                raise ValueError("--inverse is for lssvm-narx; a PI model is inverted "
+                                 "analytically (PrandtlIshlinskii.inverse())")
+            print(f"fitting a PI model ({args.operators} play operators, {args.pi_method})",
+                  file=sys.stderr)
+            model = PrandtlIshlinskii(n_operators=args.operators, method=args.pi_method,
+                                      seed=args.seed).fit(u, y)
+        else:
+            tune = args.tune == "abc"
+            if tune:
+                print(f"tuning C, sigma by ABC ({args.budget[0]} sources x {args.budget[1]} "
+                      f"cycles, {args.objective} objective)", file=sys.stderr, flush=True)
+            model, tuning = identify_lssvm_narx(
+                u, y,
+                C=None if tune else args.C, sigma=None if tune else args.sigma,
+                input_lags=args.input_lags, output_lags=args.output_lags,
+                lag_step=args.lag_step, inverse=args.inverse, seed=args.seed,
+                **({"n_sources": args.budget[0], "n_cycles": args.budget[1],
+                    "objective": args.objective.replace("-", "_"), "progress": _progress}
+                   if tune else {}),
+            )
+            if tuning is not None:
+                meta["tuning"] = tuning.as_dict()
+                print(f"tuned: C = {tuning.C:.6g}, sigma = {tuning.sigma:.6g} "
+                      f"(validation {args.objective} RMSE {tuning.score_mm:.4f}, "
+                      f"{tuning.nfev} fits, {tuning.seconds:.1f} s)")
+        result = evaluate_model(model, u, y)
+        meta["training_metrics"] = {k: result[k] for k in ("free_run", "one_step", "units",
+                                                           "samples_skipped")}
+        path = save_model(model, args.out, metadata=meta)
+        _print_metrics(result, "training")
+        print(f"model written to {path}")
+    except ValueError as exc:  # DataError, ModelFileError and bad inputs are ValueErrors
+        print(f"ipmc identify: error: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _evaluate_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="ipmc evaluate",
+                                description="Score a saved model on a record (free-run and "
+                                            "one-step).")
+    p.add_argument("--model", required=True, help="model file written by ipmc identify")
+    p.add_argument("--data", required=True, help="t,u,y CSV file (s, V, mm) or rosbag2 folder")
+    p.add_argument("--plots", metavar="DIR", help="write PNG figures to DIR")
+    p.add_argument("--json", metavar="OUT", help="write the metrics as JSON to OUT")
+    return p
+
+
+def evaluate_main(argv: list[str] | None = None) -> int:
+    """Entry point of ``ipmc evaluate``."""
+    args = _evaluate_parser().parse_args(argv)
+    try:
+        model = load_model(args.model)
+        rec = _load(args.data)
+        result = evaluate_model(model, rec.u_v, rec.y_mm)
+    except ValueError as exc:
+        print(f"ipmc evaluate: error: {exc}", file=sys.stderr)
+        return 1
+    _print_metrics(result, "evaluation")
+    if args.json:
+        doc = {k: result[k] for k in ("free_run", "one_step", "units", "samples_skipped")}
+        out = Path(args.json)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(doc, indent=2) + "\n")
+        print(f"metrics written to {out}")
+    if args.plots:
+        for f in write_plots(model, rec, result, args.plots):
+            print(f"figure written to {f}")
+    return 0
+
+
+def write_plots(model, rec, result: dict, out_dir) -> list[Path]:
+    """Measured vs model, error curve and hysteresis loop as PNG files in ``out_dir``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t, u, y = rec.t_s, rec.u_v, rec.y_mm
+    inverse = isinstance(model, InverseNarxModel)
+    target, unit = (u, "V") if inverse else (y, "mm")
+    name = "voltage u" if inverse else "displacement y"
+    free, one = result["free_run_output"], result["one_step_output"]
+    s = result["samples_skipped"]
+    paths = []
+
+    fig, ax = plt.subplots(figsize=(9, 4))
+    ax.plot(t, target, label="measured", lw=1.2)
+    ax.plot(t, free, "--", label="model, free-run", lw=1.0)
+    ax.plot(t, one, ":", label="model, one-step", lw=1.0)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel(f"{name} ({unit})")
+    ax.legend()
+    ax.set_title(f"measured vs model (free-run RMSE {result['free_run']['rmse']:.4f} {unit}, "
+                 f"one-step {result['one_step']['rmse']:.4f} {unit})")
+    fig.tight_layout()
+    paths.append(out_dir / "measured_vs_model.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(9, 3.5))
+    ax.plot(t[s:], (target - free)[s:], label="free-run error", lw=1.0)
+    ax.plot(t[s:], (target - one)[s:], label="one-step error", lw=1.0)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel(f"measured - model ({unit})")
+    ax.legend()
+    fig.tight_layout()
+    paths.append(out_dir / "error.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(5, 5))
+    if inverse:
+        ax.plot(y, u, label="measured", lw=1.0)
+        ax.plot(y, free, "--", label="inverse model, free-run", lw=1.0)
+        ax.set_xlabel("displacement y (mm)")
+        ax.set_ylabel("voltage u (V)")
+    else:
+        ax.plot(u, y, label="measured", lw=1.0)
+        ax.plot(u, free, "--", label="model, free-run", lw=1.0)
+        ax.set_xlabel("voltage u (V)")
+        ax.set_ylabel("displacement y (mm)")
+    ax.set_title("hysteresis loop")
+    ax.legend()
+    fig.tight_layout()
+    paths.append(out_dir / "hysteresis.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+    return paths
+
+
+if __name__ == "__main__":
+    sys.exit(identify_main())

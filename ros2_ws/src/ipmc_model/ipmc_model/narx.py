@@ -1,0 +1,446 @@
+"""NARX models (paper Eq. 7-8 and 19) around a regression core (by default an LSSVM).
+
+Forward model (Eq. 8), input lags m and output lags n (paper: 3 and 3):
+
+    y_k = f(u_k, u_{k-1}, ..., u_{k-m}, y_{k-1}, ..., y_{k-n})
+
+``u`` may carry extra exogenous channels, shape (N, c), each with its own input lags; this is
+how an augmented model (a filtered input for creep, a time signal for drift) reuses the same
+machinery. Inverse model (Eq. 19), used as a feedforward compensator:
+
+    u_l = h(y_l, y_{l-1}, ..., y_{l-n}, u_{l-1}, ..., u_{l-m})
+
+Regressors and targets are standardised with the training mean and standard deviation, stored
+in the model, so ``sigma`` is in standard deviations. The first ``max_lag_`` samples of every
+output are initial conditions, not predictions; metrics skip them.
+
+``predict`` is the one-step-ahead prediction from measured past outputs; ``simulate`` is the
+free run from the input alone (past outputs are the model's own). ``stepper()`` gives a
+sample-by-sample object for 100 Hz loops (one kernel row per step).
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+
+from ipmc_driver.validation import as_signal, same_length
+
+from .errors import check_fitted
+from .lssvm import FixedSizeLSSVMRegressor, LSSVMRegressor
+
+#: Paper's hand-picked LSSVM hyperparameters (section 3.3).
+PAPER_C = 998.0867
+PAPER_SIGMA = 0.2
+
+
+def make_lssvm(
+    C: float = PAPER_C,
+    sigma: float = PAPER_SIGMA,
+    n_samples: int = 0,
+    max_exact: int = 4000,
+    n_prototypes: int = 1000,
+    seed: int | None = 0,
+):
+    """An exact LSSVM for up to ``max_exact`` rows, the fixed-size variant above that."""
+    if n_samples > max_exact:
+        return FixedSizeLSSVMRegressor(C=C, sigma=sigma, n_prototypes=n_prototypes, seed=seed)
+    return LSSVMRegressor(C=C, sigma=sigma)
+
+
+def _as_inputs(name: str, u, min_length: int = 1) -> np.ndarray:
+    """Input signal(s) as a float array of shape (N, c)."""
+    arr = np.asarray(u, dtype=float) if not isinstance(u, np.ndarray) else u.astype(float)
+    if arr.ndim == 2 and arr.shape[1] > 1:
+        cols = [as_signal(f"{name}[:, {j}]", arr[:, j], min_length=min_length)
+                for j in range(arr.shape[1])]
+        return np.column_stack(cols)
+    return as_signal(name, arr, min_length=min_length)[:, None]
+
+
+def _lags_per_channel(input_lags, n_channels: int) -> tuple[int, ...]:
+    lags = (input_lags,) * n_channels if np.isscalar(input_lags) else tuple(input_lags)
+    if len(lags) != n_channels:
+        raise ValueError(
+            f"input_lags needs one entry per input channel ({n_channels}), got {lags}"
+        )
+    if any(int(m) != m or m < 0 for m in lags):
+        raise ValueError(f"input lags must be integers >= 0, got {lags}")
+    return tuple(int(m) for m in lags)
+
+
+def _lag_sets(in_lags, n: int, step: int) -> tuple[list[np.ndarray], np.ndarray]:
+    """Delays per input channel {0, s, .., m s} and of the output {1, 1 + s, .., 1 + (n-1) s}."""
+    ins = [np.arange(m + 1) * step for m in in_lags]
+    out = 1 + np.arange(n) * step
+    return ins, out
+
+
+def _build_rows(us: np.ndarray, ys: np.ndarray, in_sets, out_set, L: int) -> np.ndarray:
+    """Regressor rows for k = L..N-1: [u_{k-d} for d in each input set, y_{k-d} for d in out]."""
+    N = us.shape[0]
+    cols = [us[L - d : N - d, c] for c, ds in enumerate(in_sets) for d in ds]
+    cols += [ys[L - d : N - d] for d in out_set]
+    return np.column_stack(cols) if cols else np.empty((N - L, 0))
+
+
+class NarxModel:
+    """Forward NARX model y_k = f(u_k..u_{k-m}, y_{k-1}..y_{k-n}) (paper Eq. 8).
+
+    Parameters
+    ----------
+    regressor : estimator, optional
+        Object with ``fit(X, y)``, ``predict(X)`` and ideally ``predict_one(x)``; it is copied,
+        not modified. Default: an LSSVM with the paper's C = 998.0867, sigma = 0.2, exact up to
+        4000 rows, fixed-size (1000 prototypes) above.
+    input_lags : int or sequence of int
+        m (per input channel); the current input u_k is always included.
+    output_lags : int
+        n.
+    lag_step : int
+        Spacing s of the lags in samples: input delays {0, s, .., m s}, output delays
+        {1, 1 + s, .., 1 + (n - 1) s}. 1 (default) is the paper's consecutive lags; at a high
+        sample rate a larger s lets three lags span the actuator's time constants.
+    standardize : bool
+        Scale inputs and output to zero mean, unit variance (stored in the model).
+    max_rows : int, optional
+        Fit on at most this many regressor rows, evenly spaced in time (hyperparameter
+        tuning uses it to make one evaluation cheap); default all rows.
+
+    Attributes
+    ----------
+    regressor_ : fitted estimator
+    max_lag_ : int
+        Number of leading samples that are initial conditions (skipped by metrics).
+    n_inputs_ : int
+        Number of input channels c.
+    u_mean_, u_scale_ : ndarray (c,)
+    y_mean_, y_scale_ : float
+    """
+
+    def __init__(self, regressor=None, input_lags=3, output_lags: int = 3, lag_step: int = 1,
+                 standardize=True, max_rows: int | None = None):
+        self.regressor = regressor
+        self.input_lags = input_lags
+        self.output_lags = output_lags
+        self.lag_step = lag_step
+        self.standardize = standardize
+        self.max_rows = max_rows
+        self.regressor_ = None
+
+    # -- helpers -----------------------------------------------------------------------------
+    def _check_pair(self, u, y, min_length: int = 1):
+        us = _as_inputs("u", u, min_length)
+        ys = as_signal("y", y, min_length=min_length)
+        same_length(u=us[:, 0], y=ys)
+        return us, ys
+
+    def _scale_u(self, us):
+        return (us - self.u_mean_) / self.u_scale_
+
+    def _scale_y(self, ys):
+        return (ys - self.y_mean_) / self.y_scale_
+
+    def _unscale_y(self, zs):
+        return zs * self.y_scale_ + self.y_mean_
+
+    def _check_inputs(self, us):
+        if us.shape[1] != self.n_inputs_:
+            raise ValueError(f"u must have {self.n_inputs_} channel(s), got {us.shape[1]}")
+
+    def _rows(self, us, ys):
+        return _build_rows(self._scale_u(us), self._scale_y(ys), self.in_delays_,
+                           self.out_delays_, self.max_lag_)
+
+    # -- fitting -----------------------------------------------------------------------------
+    def fit(self, u, y) -> NarxModel:
+        """Fit on input ``u`` (N,) or (N, c) (V) and output ``y`` (N,) (mm); returns self."""
+        n = self.output_lags
+        if not isinstance(n, (int, np.integer)) or n < 0:
+            raise ValueError(f"output_lags must be an integer >= 0, got {n!r}")
+        step = self.lag_step
+        if not isinstance(step, (int, np.integer)) or step < 1:
+            raise ValueError(f"lag_step must be an integer >= 1, got {step!r}")
+        us, ys = self._check_pair(u, y)
+        in_lags = _lags_per_channel(self.input_lags, us.shape[1])
+        in_sets, out_set = _lag_sets(in_lags, int(n), int(step))
+        L = int(max([ds.max() for ds in in_sets] + [out_set.max() if n else 0]))
+        d = sum(m + 1 for m in in_lags) + int(n)
+        need = max(d + 1, 10)
+        if us.shape[0] - L < need:
+            raise ValueError(
+                f"too few samples for the lags: got {us.shape[0]}, the lags need {L} initial "
+                f"samples plus at least {need} to fit, so {L + need}"
+            )
+        u_std = us.std(axis=0)
+        for c, sd in enumerate(u_std):
+            if sd == 0.0:
+                name = "u" if us.shape[1] == 1 else f"u[:, {c}]"
+                raise ValueError(f"{name} is constant; the model cannot be identified from it")
+        if ys.std() == 0.0:
+            raise ValueError("y is constant; the model cannot be identified from it")
+        if self.standardize:
+            self.u_mean_, self.u_scale_ = us.mean(axis=0), u_std
+            self.y_mean_, self.y_scale_ = float(ys.mean()), float(ys.std())
+        else:
+            self.u_mean_, self.u_scale_ = np.zeros(us.shape[1]), np.ones(us.shape[1])
+            self.y_mean_, self.y_scale_ = 0.0, 1.0
+        self.input_lags_, self.in_delays_, self.out_delays_ = in_lags, in_sets, out_set
+        self.max_lag_, self.n_inputs_, self.n_features_ = L, us.shape[1], d
+        X = self._rows(us, ys)
+        t = self._scale_y(ys)[L:]
+        if self.max_rows is not None and X.shape[0] > int(self.max_rows):
+            keep = np.linspace(0, X.shape[0] - 1, int(self.max_rows)).round().astype(int)
+            X, t = X[keep], t[keep]
+        reg = make_lssvm(n_samples=X.shape[0]) if self.regressor is None else self.regressor
+        self.regressor_ = copy.deepcopy(reg).fit(X, t)
+        return self
+
+    # -- use ---------------------------------------------------------------------------------
+    def predict(self, u, y) -> np.ndarray:
+        """One-step-ahead prediction (mm) from input ``u`` and measured output ``y``.
+
+        Returns an array of shape (N,); the first ``max_lag_`` entries are copied from ``y``.
+        """
+        check_fitted(self, "regressor_")
+        us, ys = self._check_pair(u, y, min_length=self.max_lag_ + 1)
+        self._check_inputs(us)
+        out = ys.copy()
+        out[self.max_lag_ :] = self._unscale_y(self.regressor_.predict(self._rows(us, ys)))
+        return out
+
+    def simulate(self, u, y_init=None) -> np.ndarray:
+        """Free-run simulation (mm) from input ``u`` alone.
+
+        Parameters
+        ----------
+        u : array_like, shape (N,) or (N, c)
+            Input (V).
+        y_init : array_like, shape (max_lag_,), optional
+            The first ``max_lag_`` outputs (initial conditions, mm); default zeros (rest).
+
+        Returns
+        -------
+        ndarray, shape (N,)
+            Simulated output; entries ``[:max_lag_]`` are ``y_init``. If the simulation
+            diverges (|standardised output| > 1e6) the rest is NaN.
+        """
+        check_fitted(self, "regressor_")
+        L = self.max_lag_
+        us = _as_inputs("u", u, min_length=L + 1)
+        self._check_inputs(us)
+        if y_init is None:
+            y0 = np.zeros(L)
+        else:
+            y0 = np.atleast_1d(np.asarray(y_init, dtype=float))
+            if y0.shape != (L,) or not np.all(np.isfinite(y0)):
+                raise ValueError(f"y_init must be {L} finite values (max lag), got {y0.shape}")
+        N = us.shape[0]
+        zu = _build_rows(self._scale_u(us), np.zeros(N), self.in_delays_, np.zeros(0, int), L)
+        du = zu.shape[1]
+        z = np.empty(N)
+        z[:L] = self._scale_y(y0)
+        out_delays = self.out_delays_
+        x = np.empty(du + out_delays.size)
+        f = getattr(self.regressor_, "predict_one", None)
+        if f is None:
+            def f(row, _p=self.regressor_.predict):
+                return float(_p(row[None, :])[0])
+        for k in range(L, N):
+            x[:du] = zu[k - L]
+            x[du:] = z[k - out_delays]
+            zk = f(x)
+            if not abs(zk) < 1e6:  # diverged (or NaN): report it instead of overflowing
+                z[k:] = np.nan
+                break
+            z[k] = zk
+        return self._unscale_y(z)
+
+    def stepper(self, u_history=None, y_history=None) -> NarxStepper:
+        """Sample-by-sample free-run predictor; see :class:`NarxStepper`."""
+        check_fitted(self, "regressor_")
+        return NarxStepper(self, u_history, y_history)
+
+    def get_params(self) -> dict:
+        return {
+            "input_lags": self.input_lags if np.isscalar(self.input_lags)
+            else [int(m) for m in self.input_lags],
+            "output_lags": self.output_lags,
+            "lag_step": self.lag_step,
+            "standardize": self.standardize,
+        }
+
+
+class NarxStepper:
+    """One NARX step per call: free run, or one-step when measurements are fed back.
+
+    ``step(u_k) -> y_k`` predicts from the stored history and appends the prediction;
+    ``correct_output(y_measured_k)`` replaces that last output by a measurement (then the
+    next step is a one-step-ahead prediction). Cost per step: one kernel row plus a few
+    small array copies.
+
+    Parameters
+    ----------
+    model : fitted NarxModel
+    u_history, y_history : array_like, optional
+        Past inputs (N_h,) or (N_h, c) and outputs (N_h,), oldest first, physical units; the
+        missing past is the rest state 0 V / 0 mm.
+    """
+
+    def __init__(self, model: NarxModel, u_history=None, y_history=None):
+        self._model = model
+        self._f = model.regressor_.predict_one
+        self._u_mean = np.asarray(model.u_mean_, dtype=float)
+        self._u_scale = np.asarray(model.u_scale_, dtype=float)
+        c = model.n_inputs_
+        # Newest-first buffers; between steps _ub[j] = u_{k-1-j} and _yb[j] = y_{k-1-j}, k being
+        # the next sample. step() shifts _ub first, so then _ub[d] = u_{k-d}.
+        self._depth_u = 1 + max(int(ds.max()) for ds in model.in_delays_)
+        self._depth_y = int(model.out_delays_.max()) if model.out_delays_.size else 1
+        self._y_idx = model.out_delays_ - 1
+        self._u_idx = [(ds, ch) for ch, ds in enumerate(model.in_delays_)]
+        self._ub = np.zeros((self._depth_u, c))
+        self._yb = np.zeros(self._depth_y)
+        self._du = sum(ds.size for ds in model.in_delays_)
+        self._x = np.empty(self._du + model.out_delays_.size)
+        self.reset(u_history, y_history)
+
+    def reset(self, u_history=None, y_history=None) -> None:
+        """Reload the history (oldest first, physical units); missing past is 0 V / 0 mm."""
+        m = self._model
+        c = m.n_inputs_
+        uh = np.zeros((0, c)) if u_history is None else _as_inputs("u_history", u_history)
+        if uh.shape[1] != c:
+            raise ValueError(f"u_history must have {c} channel(s), got {uh.shape[1]}")
+        yh = np.zeros(0) if y_history is None else as_signal("y_history", y_history)
+        ub = np.zeros((self._depth_u, c))
+        tail = uh[::-1][: self._depth_u - 1]
+        ub[: tail.shape[0]] = tail
+        self._ub[:] = (ub - self._u_mean) / self._u_scale
+        yb = np.zeros(self._depth_y)
+        tail = yh[::-1][: self._depth_y]
+        yb[: tail.size] = tail
+        self._yb[:] = m._scale_y(yb)
+
+    def step(self, u_k) -> float:
+        """Feed the input u_k (V; a float, or (c,) for several channels); return y_k (mm)."""
+        ub, yb, x, du = self._ub, self._yb, self._x, self._du
+        ub[1:] = ub[:-1]
+        ub[0] = (np.asarray(u_k, dtype=float) - self._u_mean) / self._u_scale
+        pos = 0
+        for ds, ch in self._u_idx:
+            x[pos : pos + ds.size] = ub[ds, ch]
+            pos += ds.size
+        x[du:] = yb[self._y_idx]
+        zk = self._f(x)
+        yb[1:] = yb[:-1]
+        yb[0] = zk
+        return zk * self._model.y_scale_ + self._model.y_mean_
+
+    def correct_output(self, y_measured_k: float) -> None:
+        """Replace the last predicted output by the measured one (mm)."""
+        self._yb[0] = (float(y_measured_k) - self._model.y_mean_) / self._model.y_scale_
+
+
+class InverseNarxModel:
+    """Inverse NARX model u_l = h(y_l..y_{l-n}, u_{l-1}..u_{l-m}) (paper Eq. 19).
+
+    A feedforward compensator: given the desired displacement it returns the voltage. It is a
+    :class:`NarxModel` with the roles of the signals swapped (attribute ``narx_``).
+
+    Parameters
+    ----------
+    regressor : estimator, optional
+        As :class:`NarxModel`.
+    output_lags : int
+        n: past displacements y_{l-1}..y_{l-n} besides y_l (paper: 3).
+    input_lags : int
+        m: past voltages u_{l-1}..u_{l-m} (paper: 3).
+    lag_step, standardize, max_rows
+        As :class:`NarxModel`.
+    """
+
+    def __init__(self, regressor=None, output_lags: int = 3, input_lags: int = 3,
+                 lag_step: int = 1, standardize=True, max_rows: int | None = None):
+        self.regressor = regressor
+        self.output_lags = output_lags
+        self.input_lags = input_lags
+        self.lag_step = lag_step
+        self.standardize = standardize
+        self.max_rows = max_rows
+        self.narx_ = None
+
+    def fit(self, u, y) -> InverseNarxModel:
+        """Fit on the plant's input ``u`` (V) and output ``y`` (mm); returns self."""
+        u = as_signal("u", u)
+        y = as_signal("y", y)
+        same_length(u=u, y=y)
+        # Checked here so that the messages name the physical signals, not the swapped roles.
+        if np.ptp(u) == 0.0:
+            raise ValueError("u is constant; the model cannot be identified from it")
+        if np.ptp(y) == 0.0:
+            raise ValueError("y is constant; the model cannot be identified from it")
+        self.narx_ = NarxModel(self.regressor, input_lags=self.output_lags,
+                               output_lags=self.input_lags, lag_step=self.lag_step,
+                               standardize=self.standardize, max_rows=self.max_rows)
+        self.narx_.fit(y, u)
+        return self
+
+    @property
+    def max_lag_(self) -> int:
+        check_fitted(self, "narx_")
+        return self.narx_.max_lag_
+
+    @property
+    def regressor_(self):
+        check_fitted(self, "narx_")
+        return self.narx_.regressor_
+
+    def predict(self, y, u) -> np.ndarray:
+        """One-step inverse: voltage (V) from displacement ``y`` and the measured past ``u``."""
+        check_fitted(self, "narx_")
+        return self.narx_.predict(y, u)
+
+    def simulate(self, y_desired, u_init=None) -> np.ndarray:
+        """Free-run compensator: voltages (V) for a desired trajectory (mm), from rest."""
+        check_fitted(self, "narx_")
+        return self.narx_.simulate(y_desired, u_init)
+
+    def stepper(self, y_history=None, u_history=None) -> InverseStepper:
+        """Sample-by-sample compensator for a control loop; see :class:`InverseStepper`."""
+        check_fitted(self, "narx_")
+        return InverseStepper(self, y_history, u_history)
+
+    def get_params(self) -> dict:
+        return {
+            "output_lags": self.output_lags,
+            "input_lags": self.input_lags,
+            "lag_step": self.lag_step,
+            "standardize": self.standardize,
+        }
+
+
+class InverseStepper:
+    """The inverse model one sample at a time: ``step(y_desired_mm) -> u_v``.
+
+    The history holds past desired displacements and past voltages. By default the voltage the
+    model returned is taken as applied; if the loop applies something else (PID correction
+    added, 3 V limit), call ``record_applied(u_applied_v)`` after ``step`` so that the next step
+    sees the voltage that really went to the actuator.
+    """
+
+    def __init__(self, model: InverseNarxModel, y_history=None, u_history=None):
+        self._inner = NarxStepper(model.narx_, y_history, u_history)
+
+    def reset(self, y_history=None, u_history=None) -> None:
+        """Reload the history (oldest first; mm and V); missing past is 0 mm / 0 V."""
+        self._inner.reset(y_history, u_history)
+
+    def step(self, y_desired_mm: float) -> float:
+        """Desired displacement y_k (mm) -> feedforward voltage u_k (V)."""
+        return self._inner.step(y_desired_mm)
+
+    def record_applied(self, u_applied_v: float) -> None:
+        """Replace the last returned voltage in the history by the applied one (V)."""
+        self._inner.correct_output(u_applied_v)

@@ -1,0 +1,230 @@
+"""Model files: a JSON document (kind, format version, hyperparameters, scalings) plus an NPZ
+file of its arrays next to it (``model.json`` + ``model.npz``).
+
+``load_model`` fails with a :class:`~ipmc_model.errors.ModelFileError` whose message is one
+sentence naming the file and what is wrong (missing, not JSON, not an ipmc-ros model, newer
+format version, arrays missing or not matching the JSON's checksum).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ModelFileError, NotFittedError
+from .lssvm import FixedSizeLSSVMRegressor, LSSVMRegressor
+from .narx import InverseNarxModel, NarxModel
+from .play import PrandtlIshlinskii
+
+FORMAT = "ipmc-ros-model"
+FORMAT_VERSION = 1
+KINDS = ("pi", "lssvm-narx", "lssvm-narx-inverse")
+
+
+def _arrays_path(path: Path) -> Path:
+    return path.with_suffix(".npz")
+
+
+def _regressor_doc(reg) -> tuple[dict, dict]:
+    if isinstance(reg, FixedSizeLSSVMRegressor):
+        kind = "fixed-size-lssvm"
+    elif isinstance(reg, LSSVMRegressor):
+        kind = "lssvm"
+    else:
+        raise ValueError(f"cannot save a regressor of type {type(reg).__name__}")
+    doc = {"type": kind, "params": reg.get_params(), "sigma": reg.sigma_, "C": reg.C_,
+           "intercept": reg.intercept_}
+    return doc, {"centers": reg.centers_, "coef": reg.coef_}
+
+
+def _narx_doc(m: NarxModel) -> tuple[dict, dict]:
+    reg_doc, arrays = _regressor_doc(m.regressor_)
+    doc = {
+        "params": m.get_params(),
+        "input_lags_": list(m.input_lags_),
+        "u_mean": [float(v) for v in np.atleast_1d(m.u_mean_)],
+        "u_scale": [float(v) for v in np.atleast_1d(m.u_scale_)],
+        "y_mean": m.y_mean_,
+        "y_scale": m.y_scale_,
+        "regressor": reg_doc,
+    }
+    return doc, arrays
+
+
+def save_model(model, path, *, metadata: dict | None = None) -> Path:
+    """Save a fitted model to ``path`` (JSON, ``.json`` added if missing) and ``.npz`` beside it.
+
+    Parameters
+    ----------
+    model : PrandtlIshlinskii, NarxModel or InverseNarxModel (fitted)
+    path : str or os.PathLike
+    metadata : dict, optional
+        JSON-serialisable notes stored under ``"metadata"`` (data file, tuning result, units).
+
+    Returns
+    -------
+    pathlib.Path
+        The JSON file written.
+    """
+    path = Path(path)
+    if path.suffix != ".json":
+        path = path.with_name(path.name + ".json")
+    if isinstance(model, PrandtlIshlinskii):
+        if model.weights_ is None:
+            raise NotFittedError("this PrandtlIshlinskii is not fitted yet; nothing to save")
+        kind = "pi"
+        body = {"params": model.get_params(), "offset": model.offset_}
+        arrays = {"thresholds": model.thresholds_, "weights": model.weights_}
+    elif isinstance(model, InverseNarxModel):
+        if model.narx_ is None:
+            raise NotFittedError("this InverseNarxModel is not fitted yet; nothing to save")
+        kind = "lssvm-narx-inverse"
+        body, arrays = _narx_doc(model.narx_)
+        body["params"] = model.get_params()
+    elif isinstance(model, NarxModel):
+        if model.regressor_ is None:
+            raise NotFittedError("this NarxModel is not fitted yet; nothing to save")
+        kind = "lssvm-narx"
+        body, arrays = _narx_doc(model)
+    else:
+        raise ValueError(f"cannot save an object of type {type(model).__name__}")
+    buf = io.BytesIO()
+    np.savez(buf, **{k: np.asarray(v, dtype=float) for k, v in arrays.items()})
+    blob = buf.getvalue()
+    doc = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "kind": kind,
+        "units": {"input": "V", "output": "mm"},
+        "arrays_file": _arrays_path(path).name,
+        "arrays_sha256": hashlib.sha256(blob).hexdigest(),
+        "model": body,
+        "metadata": metadata or {},
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _arrays_path(path).write_bytes(blob)
+    path.write_text(json.dumps(doc, indent=2, default=_json_default) + "\n")
+    return path
+
+
+def _json_default(obj):
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def _fail(path, why: str):
+    raise ModelFileError(f"{path}: {why}.")
+
+
+def read_model_document(path) -> dict:
+    """Read and check the JSON document of a model file (no arrays); ``ModelFileError`` if bad."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        _fail(path, "no such model file")
+    except (OSError, UnicodeDecodeError) as exc:
+        _fail(path, f"cannot read the model file ({exc.__class__.__name__})")
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as exc:
+        _fail(path, f"not a model file: not valid JSON (line {exc.lineno})")
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        _fail(path, f"not an ipmc-ros model file (no \"format\": \"{FORMAT}\")")
+    version = doc.get("format_version")
+    if not isinstance(version, int) or version < 1:
+        _fail(path, f"bad format_version {version!r}")
+    if version > FORMAT_VERSION:
+        _fail(path, f"format version {version} is newer than this ipmc_model supports "
+                    f"({FORMAT_VERSION}); upgrade ipmc_model")
+    if doc.get("kind") not in KINDS:
+        _fail(path, f"unknown model kind {doc.get('kind')!r} (known: {', '.join(KINDS)})")
+    return doc
+
+
+def load_model(path):
+    """Load a model saved by :func:`save_model`.
+
+    Returns
+    -------
+    PrandtlIshlinskii, NarxModel or InverseNarxModel
+        Fitted, ready for ``predict`` / ``simulate`` / ``stepper``. The document's
+        ``metadata`` is attached as ``model.metadata_``.
+
+    Raises
+    ------
+    ModelFileError
+        One sentence naming the file and the problem.
+    """
+    path = Path(path)
+    doc = read_model_document(path)
+    arrays_path = path.parent / str(doc.get("arrays_file", _arrays_path(path).name))
+    try:
+        blob = arrays_path.read_bytes()
+    except OSError:
+        _fail(path, f"its arrays file {arrays_path.name} is missing")
+    if hashlib.sha256(blob).hexdigest() != doc.get("arrays_sha256"):
+        _fail(path, f"its arrays file {arrays_path.name} does not match (checksum differs)")
+    try:
+        with np.load(io.BytesIO(blob), allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+        model = _build(doc["kind"], doc["model"], arrays)
+    except (KeyError, TypeError, ValueError, zipfile.BadZipFile, OSError) as exc:
+        _fail(path, f"corrupt model content ({exc.__class__.__name__}: {exc})".rstrip("."))
+    model.metadata_ = doc.get("metadata", {})
+    return model
+
+
+def _build_regressor(doc: dict, arrays: dict):
+    cls = {"lssvm": LSSVMRegressor, "fixed-size-lssvm": FixedSizeLSSVMRegressor}[doc["type"]]
+    reg = cls(**doc["params"])
+    reg.sigma_, reg.C_ = float(doc["sigma"]), float(doc["C"])
+    reg._set_expansion(arrays["centers"], arrays["coef"], float(doc["intercept"]))
+    return reg
+
+
+def _build_narx(body: dict, arrays: dict, params: dict) -> NarxModel:
+    from .narx import _lag_sets
+
+    m = NarxModel(regressor=None, **params)
+    in_lags = tuple(int(v) for v in body["input_lags_"])
+    m.input_lags_ = in_lags
+    m.in_delays_, m.out_delays_ = _lag_sets(in_lags, int(params["output_lags"]),
+                                           int(params.get("lag_step", 1)))
+    m.max_lag_ = int(max([ds.max() for ds in m.in_delays_]
+                         + [m.out_delays_.max() if m.out_delays_.size else 0]))
+    m.n_inputs_ = len(in_lags)
+    m.n_features_ = sum(k + 1 for k in in_lags) + int(params["output_lags"])
+    m.u_mean_ = np.asarray(body["u_mean"], dtype=float)
+    m.u_scale_ = np.asarray(body["u_scale"], dtype=float)
+    m.y_mean_, m.y_scale_ = float(body["y_mean"]), float(body["y_scale"])
+    m.regressor_ = _build_regressor(body["regressor"], arrays)
+    if m.regressor_.centers_.shape[1] != m.n_features_:
+        raise ValueError("regressor width does not match the lags")
+    return m
+
+
+def _build(kind: str, body: dict, arrays: dict):
+    if kind == "pi":
+        m = PrandtlIshlinskii(**body["params"])
+        m.thresholds_ = np.asarray(arrays["thresholds"], dtype=float)
+        m.weights_ = np.asarray(arrays["weights"], dtype=float)
+        m.offset_ = float(body["offset"])
+        return m
+    if kind == "lssvm-narx":
+        return _build_narx(body, arrays, body["params"])
+    p = body["params"]
+    inv = InverseNarxModel(**p)
+    inv.narx_ = _build_narx(body, arrays, {"input_lags": p["output_lags"],
+                                           "output_lags": p["input_lags"],
+                                           "lag_step": p.get("lag_step", 1),
+                                           "standardize": p["standardize"]})
+    return inv

@@ -1,0 +1,84 @@
+import json
+
+import numpy as np
+import pytest
+
+from ipmc_model.identify_cli import evaluate_main, identify_main
+from ipmc_model.persistence import load_model
+
+
+@pytest.fixture(scope="module")
+def csvs(tmp_path_factory, hyst_data):
+    from ipmc_driver.dataio import Record, save_csv
+
+    u, y = hyst_data
+    d = tmp_path_factory.mktemp("data")
+    t = np.arange(u.size) * 0.01
+    train, test = d / "train.csv", d / "test.csv"
+    save_csv(Record(t[:800], u[:800], y[:800]), train)
+    save_csv(Record(t[:400], u[800:], y[800:]), test)
+    return train, test
+
+
+def test_identify_and_evaluate_lssvm_narx(tmp_path, csvs, capsys):
+    train, test = csvs
+    model = tmp_path / "m.json"
+    rc = identify_main(["--data", str(train), "--model", "lssvm-narx", "--tune", "abc",
+                        "--budget", "3x2", "--out", str(model)])
+    assert rc == 0
+    out, err = capsys.readouterr()
+    assert "ABC cycle 2/2" in err
+    assert "training free-run: RMSE" in out and "training one-step: RMSE" in out
+    out_json = tmp_path / "metrics.json"
+    plots = tmp_path / "plots"
+    rc = evaluate_main(["--model", str(model), "--data", str(test), "--json", str(out_json),
+                        "--plots", str(plots)])
+    assert rc == 0
+    doc = json.loads(out_json.read_text())
+    assert set(doc) == {"free_run", "one_step", "units", "samples_skipped"}
+    for mode in ("free_run", "one_step"):
+        assert set(doc[mode]) == {"rmse", "nrmse", "fit_percent", "max_abs"}
+    assert doc["units"] == "mm" and doc["samples_skipped"] == 3
+    assert {p.name for p in plots.iterdir()} == {"measured_vs_model.png", "error.png",
+                                                  "hysteresis.png"}
+
+
+def test_identify_pi_and_inverse(tmp_path, csvs):
+    train, test = csvs
+    rc = identify_main(["--data", str(train), "--model", "pi", "--out", str(tmp_path / "pi")])
+    assert rc == 0
+    assert load_model(tmp_path / "pi.json").inverse() is not None
+    rc = identify_main(["--data", str(train), "--model", "lssvm-narx", "--inverse",
+                        "--tune", "none", "--C", "100", "--sigma", "2",
+                        "--out", str(tmp_path / "inv.json")])
+    assert rc == 0
+    rc = evaluate_main(["--model", str(tmp_path / "inv.json"), "--data", str(test),
+                        "--json", str(tmp_path / "inv_metrics.json")])
+    assert rc == 0
+    assert json.loads((tmp_path / "inv_metrics.json").read_text())["units"] == "V"
+
+
+def test_identify_bad_data_is_one_clear_error(tmp_path, capsys):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,u,y\n0,1,nan\n0.01,1,2\n")
+    rc = identify_main(["--data", str(bad), "--model", "pi", "--out", str(tmp_path / "x")])
+    assert rc == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("ipmc identify: error:") and "\n" not in err
+
+
+def test_evaluate_corrupt_model_is_one_clear_error(tmp_path, csvs, capsys):
+    _, test = csvs
+    bad = tmp_path / "model.json"
+    bad.write_text("{}")
+    rc = evaluate_main(["--model", str(bad), "--data", str(test)])
+    assert rc == 1
+    err = capsys.readouterr().err.strip()
+    assert "not an ipmc-ros model file" in err and "\n" not in err
+
+
+def test_identify_bad_budget_is_usage_error(tmp_path, csvs):
+    train, _ = csvs
+    with pytest.raises(SystemExit):
+        identify_main(["--data", str(train), "--model", "lssvm-narx", "--budget", "lots",
+                       "--out", str(tmp_path / "m")])

@@ -1,0 +1,131 @@
+import time
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from ipmc_model.errors import NotFittedError
+from ipmc_model.lssvm import FixedSizeLSSVMRegressor, LSSVMRegressor
+from ipmc_model.metrics import rmse
+from ipmc_model.narx import InverseNarxModel, NarxModel
+
+
+@pytest.fixture(scope="module")
+def fitted(hyst_data):
+    u, y = hyst_data
+    return NarxModel(LSSVMRegressor(C=1e4, sigma=3.0)).fit(u[:800], y[:800])
+
+
+def test_narx_one_step_and_free_run_accurate(hyst_data, fitted):
+    u, y = hyst_data
+    uv, yv = u[800:], y[800:]
+    L = fitted.max_lag_
+    assert L == 3
+    one = fitted.predict(uv, yv)
+    free = fitted.simulate(uv, yv[:L])
+    assert_allclose(one[:L], yv[:L])
+    assert_allclose(free[:L], yv[:L])
+    assert rmse(yv, one, L) < 0.03 * np.std(yv)
+    assert rmse(yv, free, L) < 0.2 * np.std(yv)
+
+
+def test_stepper_reproduces_simulate(hyst_data, fitted):
+    u, y = hyst_data
+    free = fitted.simulate(u[800:900], y[800:803])
+    st = fitted.stepper(u_history=u[800:803], y_history=y[800:803])
+    steps = [st.step(v) for v in u[803:900]]
+    assert_allclose(steps, free[3:], rtol=1e-9, atol=1e-9)
+
+
+def test_stepper_with_measured_output_is_one_step(hyst_data, fitted):
+    u, y = hyst_data
+    one = fitted.predict(u[800:900], y[800:900])
+    st = fitted.stepper(u_history=u[800:803], y_history=y[800:803])
+    out = []
+    for k in range(803, 900):
+        out.append(st.step(u[k]))
+        st.correct_output(y[k])
+    assert_allclose(out, one[3:], rtol=1e-9, atol=1e-9)
+
+
+def test_lag_step_and_extra_exogenous_input(hyst_data):
+    u, y = hyst_data
+    slow = np.convolve(u, np.ones(50) / 50, mode="full")[: u.size]  # e.g. a creep regressor
+    U = np.column_stack([u, slow])
+    m = NarxModel(LSSVMRegressor(C=1e3, sigma=3.0), input_lags=(2, 0), output_lags=2,
+                  lag_step=4).fit(U[:800], y[:800])
+    assert m.max_lag_ == 8 and m.n_features_ == 3 + 1 + 2
+    free = m.simulate(U[800:], y[800:808])
+    st = m.stepper(U[792:800], y[792:800])
+    assert_allclose([st.step(U[k]) for k in range(800, 830)],
+                    m.simulate(U[792:830], y[792:800])[8:], rtol=1e-9, atol=1e-9)
+    assert np.all(np.isfinite(free))
+    with pytest.raises(ValueError, match="2 channel"):
+        m.simulate(u[:100])
+
+
+def test_inverse_model_stepper_and_compensation(hyst_data):
+    u, y = hyst_data
+    inv = InverseNarxModel(LSSVMRegressor(C=1e4, sigma=3.0)).fit(u[:800], y[:800])
+    u_one = inv.predict(y[800:], u[800:])
+    assert rmse(u[800:], u_one, inv.max_lag_) < 0.1 * np.std(u)
+    u_free = inv.simulate(y[800:900], u[800:803])
+    st = inv.stepper(y_history=y[800:803], u_history=u[800:803])
+    assert_allclose([st.step(v) for v in y[803:900]], u_free[3:], rtol=1e-9, atol=1e-9)
+    st.record_applied(0.0)  # the loop applied something else: accepted without error
+
+
+def test_inverse_step_is_fast():
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal(6000)
+    y = np.convolve(u, [0.5, 0.3, 0.2])[:6000]
+    inv = InverseNarxModel(FixedSizeLSSVMRegressor(C=100.0, sigma=2.0, n_prototypes=1000))
+    inv.fit(u, y)
+    st = inv.stepper()
+    times = []
+    for v in y[:300]:
+        t0 = time.perf_counter()
+        st.step(v)
+        times.append(time.perf_counter() - t0)
+    # target 200 us at 100 Hz; the bound is loose because the test machine is shared
+    assert np.median(times) < 600e-6, f"median step {np.median(times) * 1e6:.0f} us"
+
+
+def test_narx_rejects_nan(hyst_data):
+    u, y = hyst_data
+    y = y.copy()
+    y[10] = np.nan
+    with pytest.raises(ValueError, match="y must be finite; first non-finite value at index 10"):
+        NarxModel().fit(u, y)
+
+
+def test_narx_rejects_constant_input(hyst_data):
+    _, y = hyst_data
+    with pytest.raises(ValueError, match="u is constant"):
+        NarxModel().fit(np.full(y.size, 1.5), y)
+    with pytest.raises(ValueError, match="u is constant"):
+        InverseNarxModel().fit(np.full(y.size, 1.5), y)
+
+
+def test_narx_rejects_too_few_samples():
+    with pytest.raises(ValueError, match="too few samples for the lags"):
+        NarxModel().fit(np.arange(12.0), np.sin(np.arange(12.0)))
+
+
+def test_narx_rejects_mismatched_lengths(hyst_data):
+    u, y = hyst_data
+    with pytest.raises(ValueError, match="same length: u has 100, y has 99"):
+        NarxModel().fit(u[:100], y[:99])
+
+
+def test_narx_rejects_nonpositive_sigma(hyst_data):
+    u, y = hyst_data
+    with pytest.raises(ValueError, match="sigma must be a finite number > 0"):
+        NarxModel(LSSVMRegressor(C=10.0, sigma=0.0)).fit(u[:200], y[:200])
+
+
+def test_narx_unfitted_raises():
+    with pytest.raises(NotFittedError, match="not fitted"):
+        NarxModel().simulate(np.zeros(20))
+    with pytest.raises(NotFittedError, match="not fitted"):
+        InverseNarxModel().stepper()

@@ -1,0 +1,98 @@
+import json
+
+import pytest
+from numpy.testing import assert_allclose
+
+from ipmc_model.errors import ModelFileError, NotFittedError
+from ipmc_model.lssvm import FixedSizeLSSVMRegressor, LSSVMRegressor
+from ipmc_model.narx import InverseNarxModel, NarxModel
+from ipmc_model.persistence import FORMAT_VERSION, load_model, save_model
+from ipmc_model.play import PrandtlIshlinskii
+
+
+@pytest.fixture(scope="module")
+def models(hyst_data):
+    u, y = hyst_data
+    u, y = u[:500], y[:500]
+    return {
+        "pi": PrandtlIshlinskii(n_operators=5).fit(u, y),
+        "narx": NarxModel(LSSVMRegressor(C=100.0, sigma=2.0), lag_step=2).fit(u, y),
+        "narx-fs": NarxModel(FixedSizeLSSVMRegressor(C=100.0, sigma=2.0, n_prototypes=50))
+        .fit(u, y),
+        "inverse": InverseNarxModel(LSSVMRegressor(C=100.0, sigma=2.0)).fit(u, y),
+    }
+
+
+@pytest.mark.parametrize("name", ["pi", "narx", "narx-fs", "inverse"])
+def test_save_load_round_trip(tmp_path, hyst_data, models, name):
+    u, y = hyst_data
+    model = models[name]
+    path = save_model(model, tmp_path / "m", metadata={"note": "test"})
+    assert path.suffix == ".json" and path.with_suffix(".npz").exists()
+    loaded = load_model(path)
+    assert type(loaded) is type(model)
+    assert loaded.metadata_ == {"note": "test"}
+    if name == "pi":
+        assert_allclose(loaded.simulate(u[500:]), model.simulate(u[500:]))
+    elif name == "inverse":
+        assert_allclose(loaded.simulate(y[500:600]), model.simulate(y[500:600]))
+    else:
+        assert_allclose(loaded.simulate(u[500:600]), model.simulate(u[500:600]))
+        assert_allclose(loaded.predict(u[500:600], y[500:600]),
+                        model.predict(u[500:600], y[500:600]))
+
+
+def test_load_missing_file(tmp_path):
+    with pytest.raises(ModelFileError, match=r"no such model file\.$"):
+        load_model(tmp_path / "nope.json")
+
+
+def test_load_corrupt_json(tmp_path):
+    p = tmp_path / "bad.json"
+    p.write_text("{ not json")
+    with pytest.raises(ModelFileError, match="not valid JSON"):
+        load_model(p)
+
+
+def test_load_foreign_json(tmp_path):
+    p = tmp_path / "foreign.json"
+    p.write_text(json.dumps({"name": "something else"}))
+    with pytest.raises(ModelFileError, match="not an ipmc-ros model file"):
+        load_model(p)
+
+
+def test_load_binary_garbage(tmp_path):
+    p = tmp_path / "garbage.json"
+    p.write_bytes(b"\x89PNG\r\n\x1a\n\x00\xff\xfe")
+    with pytest.raises(ModelFileError) as info:
+        load_model(p)
+    assert str(info.value).count(".") >= 1 and "\n" not in str(info.value)
+
+
+def test_load_newer_version(tmp_path, models):
+    path = save_model(models["pi"], tmp_path / "m.json")
+    doc = json.loads(path.read_text())
+    doc["format_version"] = FORMAT_VERSION + 1
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ModelFileError, match="newer than this ipmc_model supports"):
+        load_model(path)
+
+
+def test_load_tampered_arrays(tmp_path, models):
+    path = save_model(models["narx"], tmp_path / "m.json")
+    npz = path.with_suffix(".npz")
+    npz.write_bytes(npz.read_bytes()[:-10])
+    with pytest.raises(ModelFileError, match="does not match"):
+        load_model(path)
+    npz.unlink()
+    with pytest.raises(ModelFileError, match="missing"):
+        load_model(path)
+
+
+def test_model_file_error_is_value_error():
+    assert issubclass(ModelFileError, ValueError)
+
+
+def test_save_unfitted_raises(tmp_path):
+    with pytest.raises(NotFittedError):
+        save_model(NarxModel(), tmp_path / "m.json")
