@@ -10,9 +10,15 @@ simulated plant (the plant's own time is not counted):
    available. The inverse model is fitted here on a plant excitation, or loaded with
    ``--model FILE`` (``ipmc_model.persistence.load_model``).
 
-Goal (issue 5): p99 <= 200 us per step. Prints one table; not part of the pass/fail suite.
+With ``--graph SECONDS`` it also runs ``sim_plant`` (real time), ``reference`` and
+``controller`` as processes over DDS (own domain, loopback) and reports the controller's own
+loop figures from /diagnostics: steps, deadline misses (a 100 Hz tick later than 1.5 periods
+after the previous one, wall clock) and the step time including the publish.
 
-    .venv/bin/python benchmarks/bench_controller.py [--steps 20000] [--model FILE]
+Goals (issue 5): p99 <= 200 us per step; deadline misses < 0.1 %. Prints tables; not part of
+the pass/fail suite.
+
+    .venv/bin/python benchmarks/bench_controller.py [--steps 20000] [--model FILE] [--graph 30]
 """
 
 from __future__ import annotations
@@ -21,7 +27,11 @@ import argparse
 import gc
 import math
 import os
+import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -85,6 +95,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=20000, help="steps per case")
     parser.add_argument("--model", help="inverse model file (default: fit one here)")
+    parser.add_argument("--graph", type=float, default=0.0, metavar="SECONDS",
+                        help="also run the node graph over DDS this long (0: skip)")
     args = parser.parse_args(argv)
     n = args.steps
     rows = []
@@ -129,7 +141,66 @@ def main(argv: list[str] | None = None) -> int:
     for label, value in (("wall", worst_wall), ("cpu", worst_cpu)):
         verdict = "meets" if value <= 200.0 else "MISSES"
         print(f"worst {label} p99 {value:.1f} us: {verdict} the 200 us goal")
+    if args.graph > 0:
+        _graph(args.graph)
     return 0 if math.isfinite(worst_wall) else 1
+
+
+def _graph(seconds: float) -> None:
+    """sim_plant + reference + controller over DDS; print the controller's loop diagnostics."""
+    env = dict(os.environ, ROS_DOMAIN_ID=str(1 + os.getpid() % 100),
+               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    bin_dir = Path(sys.executable).parent
+    argvs = [[str(bin_dir / "sim_plant")],
+             [str(bin_dir / "reference"), "--ros-args", "-p", "kind:=sine"],
+             [str(bin_dir / "controller"), "--ros-args", "-p", "mode:=pid"]]
+    procs = [subprocess.Popen(a, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+             for a in argvs]
+    loop: dict[str, str] = {}
+
+    def on_diag(msg):
+        for status in msg.status:
+            if status.name == "controller: loop":
+                loop.clear()
+                loop.update({kv.key: kv.value for kv in status.values})
+
+    rclpy.init()
+    node = rclpy.create_node("bench_controller")
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
+    try:
+        # Measure from the first report with steps, so start-up (discovery) is not counted.
+        deadline = time.monotonic() + 30.0
+        while int(loop.get("ticks", 0)) == 0 and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.05)
+        start = dict(loop)
+        end_at = time.monotonic() + seconds
+        while time.monotonic() < end_at:
+            rclpy.spin_once(node, timeout_sec=0.05)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+        for p in procs:
+            p.send_signal(signal.SIGINT)
+        for p in procs:
+            try:
+                p.wait(timeout=5.0)
+            except subprocess.TimeoutExpired:
+                p.kill()
+    if not start or not loop:
+        print("\ngraph: no loop diagnostics from the controller")
+        return
+    ticks = int(loop["ticks"]) - int(start["ticks"])
+    misses = int(loop["deadline_misses"]) - int(start["deadline_misses"])
+    ratio = misses / ticks if ticks else math.nan
+    verdict = "meets" if ratio < 1e-3 else "MISSES"
+    print(f"\ngraph over DDS, {seconds:g} s at 100 Hz (sim_plant real time, pid mode): "
+          f"{ticks} steps, {misses} deadline misses ({ratio:.3%}): {verdict} the 0.1 % goal; "
+          f"step incl. publish p50 {loop['step_p50_us']} us, p99 {loop['step_p99_us']} us "
+          f"(last 2000 steps)")
 
 
 if __name__ == "__main__":
