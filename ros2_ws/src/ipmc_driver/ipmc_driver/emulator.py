@@ -64,6 +64,8 @@ from .protocol import (
 
 __all__ = ["FAULT_KINDS", "Fault", "parse_fault", "RigEmulator", "main"]
 
+TX_BUFFER_BYTES = 4096  # transmit buffer of the emulated firmware
+
 FAULT_KINDS = {
     "garbage": int,
     "badcrc": int,
@@ -166,6 +168,7 @@ class RigEmulator:
                 ["counter", "t_s", "setpoint_v", "u_applied_v", "y_mm", "x_mm", "sent"]
             )
         self.bytes_sent = 0
+        self._tx_backlog = bytearray()
 
     # ------------------------------------------------------------------ device
     @property
@@ -197,6 +200,7 @@ class RigEmulator:
                 with contextlib.suppress(OSError):
                     os.close(fd)
         self._master = self._slave = None
+        self._tx_backlog.clear()
 
     def close(self) -> None:
         """Close the device and the log."""
@@ -234,15 +238,22 @@ class RigEmulator:
 
     # ------------------------------------------------------------------ protocol
     def _send(self, data: bytes) -> None:
+        """Write to the pty; what does not fit waits in a bounded transmit buffer."""
         if self._master is None:
             return
+        self._tx_backlog += data
         try:
-            n = os.write(self._master, data)
+            n = os.write(self._master, self._tx_backlog)
         except BlockingIOError:
-            return  # nobody reads the port: the bytes are lost, as on a real UART
+            n = 0
         except OSError:
-            return
+            n = len(self._tx_backlog)  # no client: the bytes are lost, as on a real UART
         self.bytes_sent += n
+        del self._tx_backlog[:n]
+        if len(self._tx_backlog) > TX_BUFFER_BYTES:
+            # Nobody reads the port: the firmware's transmit buffer overflows and is emptied
+            # (whole frames are lost, a partial one stays possible at the cut).
+            self._tx_backlog.clear()
 
     def _next_seq(self) -> int:
         seq = self._tx_seq
