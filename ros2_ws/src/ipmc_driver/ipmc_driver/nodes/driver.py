@@ -67,8 +67,9 @@ DISCONNECTED, CONNECTING, CONNECTED = "disconnected", "connecting", "connected"
 
 
 class Driver(Node):
-    def __init__(self) -> None:
-        super().__init__("driver")
+    def __init__(self, **node_kwargs) -> None:
+        # node_kwargs (context, parameter_overrides) let tests build the node in process.
+        super().__init__("driver", **node_kwargs)
         ro = dict(read_only=True)
         self.declare_parameter("port", "/dev/ttyUSB0", ParameterDescriptor(
             description="serial device of the RS-485 adapter", **ro))

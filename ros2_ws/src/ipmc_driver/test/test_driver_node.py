@@ -1,0 +1,218 @@
+"""The driver node in process, the test playing the rig on the other end of a pty.
+
+Precise control of what the "rig" sends: stamps from the counter, dropped samples, out-of-range
+readings, the voltage limit, the watchdog, 0 V on destroy, parameter validation. The whole graph
+with the emulator and the recorder as processes is tests/test_driver_graph.py.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import tty
+
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+from geometry_msgs.msg import PointStamped, Vector3Stamped  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import QoSProfile, QoSReliabilityPolicy  # noqa: E402
+from std_msgs.msg import Float64  # noqa: E402
+
+from ipmc_driver.arc import ArcGeometry  # noqa: E402
+from ipmc_driver.nodes.driver import Driver  # noqa: E402
+from ipmc_driver.protocol import (  # noqa: E402
+    FrameDecoder,
+    Sample,
+    SetVoltage,
+    encode_message,
+    parse_frame,
+)
+
+QOS = QoSProfile(depth=100, reliability=QoSReliabilityPolicy.RELIABLE)
+PERIOD_NS = 10_000_000
+
+
+@pytest.fixture
+def graph():
+    """A driver on a pty (the test holds the master end), a probe node, one executor."""
+    keys = {"ROS_DOMAIN_ID": str(232 - os.getpid() % 16),
+            "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    old = {k: os.environ.get(k) for k in keys}
+    os.environ.update(keys)
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    os.set_blocking(master, False)
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    driver = Driver(context=context, parameter_overrides=[
+        Parameter("port", value=os.ttyname(slave)),
+        Parameter("watchdog_s", value=0.3),
+    ])
+    probe = rclpy.create_node("probe", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(driver)
+    executor.add_node(probe)
+    rig = Rig(master, executor, probe)
+    try:
+        yield driver, rig
+    finally:
+        executor.shutdown()
+        if driver.handle is not None:
+            driver.destroy_node()
+        probe.destroy_node()
+        rclpy.try_shutdown(context=context)
+        os.close(master)
+        os.close(slave)
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+class Rig:
+    """The test's side of the serial line, plus what the driver published."""
+
+    def __init__(self, master, executor, probe):
+        self.master = master
+        self.executor = executor
+        self.decoder = FrameDecoder()
+        self.commands: list[float] = []
+        self.disp: list[tuple[int, float]] = []
+        self.volt: list[tuple[int, float, float]] = []
+        probe.create_subscription(PointStamped, "/ipmc/displacement", self._on_disp, QOS)
+        probe.create_subscription(Vector3Stamped, "/ipmc/voltage", self._on_volt, QOS)
+        self.command = probe.create_publisher(Float64, "/ipmc/command", 10)
+        self.seq = 0
+
+    @staticmethod
+    def _ns(h):
+        return h.stamp.sec * 1_000_000_000 + h.stamp.nanosec
+
+    def _on_disp(self, m):
+        self.disp.append((self._ns(m.header), m.point.x))
+
+    def _on_volt(self, m):
+        self.volt.append((self._ns(m.header), m.vector.x, m.vector.y))
+
+    def send(self, sample: Sample):
+        self.seq = (self.seq + 1) & 0xFF
+        os.write(self.master, encode_message(sample, self.seq))
+
+    def spin(self, seconds):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.005)
+            try:
+                data = os.read(self.master, 4096)
+            except (BlockingIOError, OSError):
+                data = b""
+            for frame in self.decoder.feed(data):
+                msg = parse_frame(frame)
+                if isinstance(msg, SetVoltage):
+                    self.commands.append(msg.voltage_v)
+
+    def wait(self, predicate, timeout_s=5.0):
+        deadline = time.monotonic() + timeout_s
+        while not predicate():
+            assert time.monotonic() < deadline, "timed out"
+            self.spin(0.02)
+
+
+def test_stamps_from_counter_and_dropped_samples(graph):
+    driver, rig = graph
+    rig.wait(lambda: driver.link_state == "connected")
+    geo = ArcGeometry()
+    for counter in (100, 101, 102, 105, 106):
+        rig.send(Sample(counter, 0.5, geo.reading(-counter * 0.01)))
+    rig.wait(lambda: len(rig.disp) == 5 and len(rig.volt) == 5)
+    stamps = [s for s, _ in rig.disp]
+    assert [s - stamps[0] for s in stamps] == [0, 1 * PERIOD_NS, 2 * PERIOD_NS, 5 * PERIOD_NS,
+                                               6 * PERIOD_NS]
+    # Arc-compensated, in metres; 16-bit laser counts: within 5 um.
+    assert [y * 1e3 for _, y in rig.disp] == pytest.approx([-1.0, -1.01, -1.02, -1.05, -1.06],
+                                                          abs=5e-3)
+    assert all(v[1] == pytest.approx(0.5) for v in rig.volt)
+    assert driver.dropped == 2
+    # A repeated (or older) counter is not a new sample.
+    rig.send(Sample(106, 0.5, 150.0))
+    rig.spin(0.1)
+    assert len(rig.disp) == 5
+
+
+def test_out_of_range_readings_counted_not_published(graph):
+    driver, rig = graph
+    rig.wait(lambda: driver.link_state == "connected")
+    lo, hi = ArcGeometry().reading_range_mm
+    rig.send(Sample(1, 0.0, 150.0))
+    rig.send(Sample(2, 0.0, hi + 1.0))  # beyond Eq. 1's range
+    rig.send(Sample(3, 0.0, None))  # the sensor saw no target
+    rig.send(Sample(4, 0.0, lo))  # the open end of the range
+    rig.send(Sample(5, 0.0, 151.0))
+    rig.wait(lambda: len(rig.disp) == 2)
+    rig.spin(0.1)
+    assert len(rig.disp) == len(rig.volt) == 2
+    assert driver.out_of_range == 3
+    assert rig.disp[1][0] - rig.disp[0][0] == 4 * PERIOD_NS
+
+
+def test_commands_limited_to_u_max_and_nan_ignored(graph):
+    driver, rig = graph
+    rig.wait(lambda: driver.link_state == "connected")
+    rig.wait(lambda: rig.command.get_subscription_count() >= 1)
+    for v in (1.25, 5.0, -7.0, float("nan")):
+        rig.command.publish(Float64(data=v))
+        rig.spin(0.05)
+    rig.wait(lambda: rig.commands[-2:] == [3.0, -3.0])
+    assert 1.25 in rig.commands
+    assert max(abs(v) for v in rig.commands) <= 3.0
+    assert driver.clamped == 2
+
+
+def test_watchdog_commands_zero_volts(graph):
+    driver, rig = graph
+    rig.wait(lambda: driver.link_state == "connected")
+    rig.wait(lambda: rig.command.get_subscription_count() >= 1)
+    rig.command.publish(Float64(data=2.0))
+    rig.wait(lambda: rig.commands and rig.commands[-1] == 2.0)
+    t0 = time.monotonic()
+    rig.wait(lambda: rig.commands[-1] == 0.0, timeout_s=2.0)
+    assert 0.25 < time.monotonic() - t0 < 0.6
+    assert driver.watchdog_tripped
+
+
+def test_destroy_node_commands_zero_then_closes(graph):
+    driver, rig = graph
+    rig.wait(lambda: driver.link_state == "connected")
+    rig.wait(lambda: rig.command.get_subscription_count() >= 1)
+    rig.command.publish(Float64(data=-1.5))
+    rig.wait(lambda: rig.commands and rig.commands[-1] == -1.5)
+    driver.destroy_node()
+    rig.spin(0.05)
+    assert rig.commands[-1] == 0.0
+    assert driver.link_state == "disconnected"
+
+
+@pytest.mark.parametrize(
+    "name, value, reason",
+    [("u_max", 5.0, "u_max must be in"), ("u_max", 0.0, "u_max must be in"),
+     ("watchdog_s", 0.0, "watchdog_s must be > 0"), ("arc_l2_mm", 30.0, "l2_mm must be in")],
+)
+def test_bad_parameters_rejected_with_reason(graph, name, value, reason):
+    driver, _ = graph
+    result = driver.set_parameters([Parameter(name, value=value)])[0]
+    assert not result.successful
+    assert reason in result.reason
+
+
+def test_good_parameters_applied(graph):
+    driver, _ = graph
+    results = driver.set_parameters([Parameter("u_max", value=2.0),
+                                     Parameter("arc_l2_mm", value=15.0)])
+    assert all(r.successful for r in results)
+    assert driver.u_max == 2.0
+    assert driver.geometry.l2_mm == 15.0
+    result = driver.set_parameters([Parameter("port", value="/dev/null")])[0]
+    assert not result.successful  # read-only
