@@ -15,6 +15,10 @@ x in m) and ``/ipmc/feedforward`` (Vector3Stamped, x in V); publishes ``/ipmc/co
 - The feedforward is stale when older than ``feedforward_timeout_s`` on the node's clock: the
   loop then runs PID alone (bumplessly), says so on ``/diagnostics`` and in the log, and returns
   to the requested mode when feedforward messages come back.
+- The feedforward answers one reference sample. When its header stamp equals the stamp of a
+  recent reference message (model_server copies it), the step uses that reference with it, so
+  u_ff and the PID's error refer to the same desired displacement, as in an in-process loop;
+  otherwise the latest reference.
 - Without a reference, or without a displacement younger than ``measurement_timeout_s`` when
   feedback is needed, the command is 0 V and the controller state is reset.
 """
@@ -25,7 +29,7 @@ import math
 import signal
 import sys
 import time
-from collections import deque
+from collections import OrderedDict, deque
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -47,12 +51,18 @@ TRIGGERS = ("timer", "measurement")
 GAIN_PARAMS = ("k", "ti_s", "td_s", "n", "tracking_time_constant")
 LIMIT_PARAMS = ("u_clamp_min", "u_clamp_max")
 HARDWARE_ID = "ipmc"
+# Recent reference samples kept to pair a feedforward with the reference it answers.
+REFERENCE_MEMORY = 64
 # A tick later than this many periods counts as a deadline miss (wall clock).
 MISS_FACTOR = 1.5
 
 
 def _stamp_s(msg) -> float:
     return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+
+
+def _stamp_ns(msg) -> int:
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
 
 
 class Controller(Node):
@@ -102,6 +112,8 @@ class Controller(Node):
 
         # Latest inputs (mm, V) and their receive times on the node clock (s).
         self._ref_mm: float | None = None
+        self._recent_refs: OrderedDict[int, float] = OrderedDict()
+        self._ff_ref_mm: float | None = None  # the reference the last feedforward answers
         self._y_mm: float | None = None
         self._y_rx_s = -math.inf
         self._y_stamp_s: float | None = None
@@ -181,11 +193,15 @@ class Controller(Node):
     def _on_reference(self, msg: PointStamped) -> None:
         if math.isfinite(msg.point.x):
             self._ref_mm = msg.point.x * 1e3
+            self._recent_refs[_stamp_ns(msg)] = self._ref_mm
+            if len(self._recent_refs) > REFERENCE_MEMORY:
+                self._recent_refs.popitem(last=False)
 
     def _on_feedforward(self, msg: Vector3Stamped) -> None:
         if math.isfinite(msg.vector.x):
             self._ff_v = float(msg.vector.x)
             self._ff_rx_s = self._now_s()
+            self._ff_ref_mm = self._recent_refs.get(_stamp_ns(msg))
 
     def _on_displacement(self, msg: PointStamped) -> None:
         if not math.isfinite(msg.point.x):
@@ -220,9 +236,11 @@ class Controller(Node):
                           else "no fresh displacement")
             return
         self._idle_reason = ""
-        y_mm = self._y_mm if self._y_mm is not None else self._ref_mm
-        u = self.hybrid.compute_command(self._ref_mm, y_mm, dt,
-                                        self._ff_v if ff_fresh else None)
+        ref_mm = self._ref_mm
+        if ff_fresh and mode != "pid" and self._ff_ref_mm is not None:
+            ref_mm = self._ff_ref_mm
+        y_mm = self._y_mm if self._y_mm is not None else ref_mm
+        u = self.hybrid.compute_command(ref_mm, y_mm, dt, self._ff_v if ff_fresh else None)
         self.pub_command.publish(Float64(data=u))
         self.step_us.append((time.perf_counter() - wall) * 1e6)
         self._saturated.append(self.hybrid.saturated)
@@ -278,7 +296,8 @@ class Controller(Node):
                                 timeout_s=self.ff_timeout_s)
         return self._status("feedforward", DiagnosticStatus.OK, f"fresh, mode {mode}",
                             mode=mode, active_mode=self.hybrid.active_mode, age_s=age_txt,
-                            feedforward_v=f"{self.hybrid.feedforward_v:.4f}")
+                            feedforward_v=f"{self.hybrid.feedforward_v:.4f}",
+                            paired_with_reference=self._ff_ref_mm is not None)
 
     def _diag_measurement(self) -> DiagnosticStatus:
         if self._idle_reason:
