@@ -14,7 +14,7 @@ Hagglund, *Advanced PID Control* (2006), ch. 3 and 13, do for a practical contro
 - back-calculation anti-windup with tracking time constant ``Tt`` (default ``sqrt(TI * TD)``,
   Astrom-Hagglund's rule, which is also control_toolbox's default ``sqrt(d / i)``);
 - bumpless gain changes: the integral absorbs the jump of the proportional and derivative
-  terms, so the next output equals the last one;
+  terms, so the output continues without a step;
 - the sample time ``dt_s`` is the caller's (measured from its clock), never assumed.
 
 Names follow ros-controls/control_toolbox (``Pid``/``PidROS``) where they mean the same thing:
@@ -307,7 +307,8 @@ class PID:
         """Change gains without a jump of the output (bumpless).
 
         The integral term absorbs the change of the proportional and derivative terms at the
-        last error and derivative state, so a step with unchanged inputs gives the last output.
+        last error and derivative state, so the next step gives what it would have given with
+        the old gains (the new gains act on what changes from then on).
         Arguments left at None keep their value. Invalid values raise
         :class:`ControlParameterError` and change nothing.
 
