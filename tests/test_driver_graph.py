@@ -45,8 +45,9 @@ COMMAND_QOS = QoSProfile(depth=10, reliability=QoSReliabilityPolicy.RELIABLE)
 @pytest.fixture(scope="module")
 def ros_env():
     """A private DDS domain on loopback, and an rclpy context in this process."""
-    # 200-231: away from the 100-199 the recorder tests use, so parallel sessions do not meet.
-    keys = {"ROS_DOMAIN_ID": str(200 + os.getpid() % 32),
+    # 215-232: on Linux the DDS ports of these domains lie above the ephemeral port range (as do
+    # 0-101), and away from the 100-199 other test modules use, so parallel sessions do not meet.
+    keys = {"ROS_DOMAIN_ID": str(215 + os.getpid() % 18),
             "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
     old = {k: os.environ.get(k) for k in keys}
     os.environ.update(keys)

@@ -6,8 +6,9 @@ import math
 
 import numpy as np
 import pytest
-from ipmc_driver.arc import ArcGeometry, ArcRangeError
 from numpy.testing import assert_allclose
+
+from ipmc_driver.arc import ArcGeometry, ArcRangeError
 
 
 def test_defaults_match_paper():

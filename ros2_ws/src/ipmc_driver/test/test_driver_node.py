@@ -37,7 +37,8 @@ PERIOD_NS = 10_000_000
 @pytest.fixture
 def graph():
     """A driver on a pty (the test holds the master end), a probe node, one executor."""
-    keys = {"ROS_DOMAIN_ID": str(232 - os.getpid() % 16),
+    # 215-232: DDS ports above Linux's ephemeral range; one domain per test session.
+    keys = {"ROS_DOMAIN_ID": str(215 + os.getpid() % 18),
             "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
     old = {k: os.environ.get(k) for k in keys}
     os.environ.update(keys)

@@ -12,6 +12,8 @@ import time
 
 import pytest
 import serial
+from numpy.testing import assert_allclose
+
 from ipmc_driver.arc import ArcGeometry
 from ipmc_driver.emulator import Fault, RigEmulator, parse_fault
 from ipmc_driver.plant import IpmcPlant
@@ -24,7 +26,6 @@ from ipmc_driver.protocol import (
     encode_message,
     parse_frame,
 )
-from numpy.testing import assert_allclose
 
 RATE_HZ = 200.0
 

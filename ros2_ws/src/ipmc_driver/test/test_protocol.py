@@ -8,6 +8,7 @@ import sys
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+
 from ipmc_driver.protocol import (
     FLAG_VOLTAGE_CLAMPED,
     MSG_SAMPLE,
@@ -37,7 +38,8 @@ def sample_frame(counter: int, seq: int | None = None) -> bytes:
 
 
 def test_import_leaves_rclpy_out():
-    code = "import sys, ipmc_driver.protocol, ipmc_driver.arc; print('rclpy' in sys.modules)"
+    code = ("import sys, ipmc_driver.protocol, ipmc_driver.arc, ipmc_driver.emulator; "
+            "print('rclpy' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 
