@@ -37,7 +37,7 @@ from std_msgs.msg import Float64  # noqa: E402
 GRACE_S = 2.0
 RATE_HZ = 100
 PERIOD_NS = 1_000_000_000 // RATE_HZ
-WATCHDOG_S = 0.5
+WATCHDOG_S = 1.0  # long enough to tell the shutdown's 0 V from the watchdog's
 SAMPLE_QOS = QoSProfile(depth=100, reliability=QoSReliabilityPolicy.RELIABLE)
 COMMAND_QOS = QoSProfile(depth=10, reliability=QoSReliabilityPolicy.RELIABLE)
 
@@ -274,7 +274,7 @@ def test_driver_through_emulator_link_with_faults_watchdog_and_shutdown(ros_env,
     assert int(link["connections"]) >= 2
     assert link["level"] == 0
     assert resumed_after_s < 2.0
-    assert zero_after_s < WATCHDOG_S + 0.4
+    assert WATCHDOG_S - 0.1 < zero_after_s < WATCHDOG_S + 0.4
     assert diag["driver: command"]["clamped"] != "0"
 
     # The rig log: every sample the emulator took, and whether its frame went out intact.
@@ -287,7 +287,7 @@ def test_driver_through_emulator_link_with_faults_watchdog_and_shutdown(ros_env,
     assert max(abs(v) for v in setpoints) <= 3.0
     # 0 V on SIGINT: before the watchdog could have acted.
     zero_events = [t for t, e in events if e == "setpoint 0.000" and t > t_sigint]
-    assert zero_events and zero_events[0] - t_sigint < WATCHDOG_S
+    assert zero_events and zero_events[0] - t_sigint < WATCHDOG_S - 0.2
     assert setpoints[-1] == 0.0
 
     # The bag: the plant's response, every sample one of the rig's intact frames.
