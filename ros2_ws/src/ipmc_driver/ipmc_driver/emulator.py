@@ -403,7 +403,9 @@ def _build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--u-limit-v", type=float, default=3.0, help="firmware voltage limit")
     parser.add_argument("--log", default=None, help="CSV log of every sample")
     parser.add_argument(
-        "--events", action="store_true", help="print one stdout line per event after the path"
+        "--events", action="store_true",
+        help="after the path, print one stdout line per event: '<time.monotonic()> <event>' "
+        "(fault ..., setpoint V, unplugged, replugged)"
     )
     parser.add_argument("--duration-s", type=float, default=None, help="stop after this time")
     return parser
