@@ -211,11 +211,6 @@ def _load_csv(path: Path) -> Record:
 
 
 def _load_bag(path: Path, voltage_topic: str, displacement_topic: str) -> Record:
-    # Imported here so that CSV users do not pay for rosbags.
-    from rosbags.rosbag2 import Reader
-    from rosbags.rosbag2.errors import ReaderError
-    from rosbags.typesys import Stores, get_typestore
-
     if path.is_dir() and not (path / "metadata.yaml").exists():
         raise DataError(
             f"{path} is not a readable rosbag2 folder: it has no metadata.yaml (if its recorder "
@@ -228,9 +223,35 @@ def _load_bag(path: Path, voltage_topic: str, displacement_topic: str) -> Record
             raise DataError(
                 f"{path} has an unfinished split {torn[0]} (its recorder is still running or "
                 f"was killed; run 'ipmc bag-recover {path}' to keep what it holds).")
-    typestore = get_typestore(Stores.ROS2_JAZZY)
     wanted = {voltage_topic: VOLTAGE_TYPE, displacement_topic: DISPLACEMENT_TYPE}
-    samples: dict[str, dict[int, float]] = {voltage_topic: {}, displacement_topic: {}}
+    samples = read_stamped_series(path, wanted)
+    samples[displacement_topic] = {k: v * 1e3 for k, v in samples[displacement_topic].items()}
+    return _pair(path, samples[voltage_topic], samples[displacement_topic],
+                 voltage_topic, displacement_topic)
+
+
+
+# The scalar each stamped message type carries (SI units, as on the topic).
+_SCALAR_FIELD = {
+    VOLTAGE_TYPE: lambda msg: msg.vector.x,
+    DISPLACEMENT_TYPE: lambda msg: msg.point.x,
+}
+
+
+def read_stamped_series(path, wanted: dict[str, str]) -> dict[str, dict[int, float]]:
+    """Read stamped scalar topics of a rosbag2 folder: ``{topic: {stamp_ns: value}}``.
+
+    ``wanted`` maps topic -> message type (``geometry_msgs/msg/Vector3Stamped``: ``vector.x``;
+    ``geometry_msgs/msg/PointStamped``: ``point.x``, in the topic's SI unit). Raises
+    ``DataError`` for a missing topic, a wrong type, a repeated stamp or an unreadable bag.
+    """
+    from rosbags.rosbag2 import Reader
+    from rosbags.rosbag2.errors import ReaderError
+    from rosbags.typesys import Stores, get_typestore
+
+    path = Path(path)
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    samples: dict[str, dict[int, float]] = {topic: {} for topic in wanted}
     try:
         with Reader(path) as reader:
             conns = [c for c in reader.connections if c.topic in wanted]
@@ -249,10 +270,9 @@ def _load_bag(path: Path, voltage_topic: str, displacement_topic: str) -> Record
             for conn, _t_ns, raw in reader.messages(connections=conns):
                 msg = typestore.deserialize_cdr(raw, conn.msgtype)
                 stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-                value = msg.vector.x if conn.topic == voltage_topic else msg.point.x * 1e3
                 store = samples[conn.topic]
                 duplicates += stamp in store
-                store[stamp] = value
+                store[stamp] = float(_SCALAR_FIELD[conn.msgtype](msg))
     except DataError:
         raise
     except (ReaderError, OSError, KeyError, ValueError, AssertionError) as exc:
@@ -261,9 +281,7 @@ def _load_bag(path: Path, voltage_topic: str, displacement_topic: str) -> Record
     if duplicates:
         raise DataError(f"{path} has {duplicates} message(s) repeating a header stamp already "
                         f"seen on the same topic.")
-    return _pair(path, samples[voltage_topic], samples[displacement_topic],
-                 voltage_topic, displacement_topic)
-
+    return samples
 
 def _pair(path: Path, volts: dict[int, float], metres_mm: dict[int, float],
           voltage_topic: str, displacement_topic: str) -> Record:

@@ -19,6 +19,11 @@ x in m) and ``/ipmc/feedforward`` (Vector3Stamped, x in V); publishes ``/ipmc/co
   recent reference message (model_server copies it), the step uses that reference with it, so
   u_ff and the PID's error refer to the same desired displacement, as in an in-process loop;
   otherwise the latest reference.
+- With ``trigger:=measurement`` the command computed on the sample stamped ``t`` is applied
+  over the next period, so it aims at the reference stamped ``t + 1/rate_hz`` when that sample
+  is known (the ``reference`` node publishes ahead with ``preview_s``), with the feedforward
+  answering that same reference: the graph then runs the in-process loop of
+  ``ipmc_control.experiment`` sample for sample.
 - Without a reference, or without a displacement younger than ``measurement_timeout_s`` when
   feedback is needed, the command is 0 V and the controller state is reset.
 """
@@ -38,13 +43,17 @@ from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import Float64
 
 from ipmc_control.hybrid import HybridController, check_mode
 from ipmc_control.pid import PID, ControlParameterError
 
+# Inputs: reliable and deep like their publishers (docs/interfaces.md), so that a lock-step
+# burst loses no sample; the loop keys references and feedforwards by stamp.
+INPUT_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
+                       reliability=QoSReliabilityPolicy.RELIABLE)
 COMMAND_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
                          reliability=QoSReliabilityPolicy.RELIABLE)
 TRIGGERS = ("timer", "measurement")
@@ -114,6 +123,7 @@ class Controller(Node):
         self._ref_mm: float | None = None
         self._recent_refs: OrderedDict[int, float] = OrderedDict()
         self._ff_ref_mm: float | None = None  # the reference the last feedforward answers
+        self._recent_ffs: OrderedDict[int, float] = OrderedDict()
         self._y_mm: float | None = None
         self._y_rx_s = -math.inf
         self._y_stamp_s: float | None = None
@@ -133,11 +143,11 @@ class Controller(Node):
         self.pub_command = self.create_publisher(Float64, "/ipmc/command", COMMAND_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_subscription(PointStamped, "/ipmc/reference", self._on_reference,
-                                 qos_profile_sensor_data)
+                                 INPUT_QOS)
         self.create_subscription(PointStamped, "/ipmc/displacement", self._on_displacement,
-                                 qos_profile_sensor_data)
+                                 INPUT_QOS)
         self.create_subscription(Vector3Stamped, "/ipmc/feedforward", self._on_feedforward,
-                                 qos_profile_sensor_data)
+                                 INPUT_QOS)
 
         if self.trigger == "timer":
             self.create_timer(1.0 / self.rate_hz, self._on_tick)
@@ -202,6 +212,9 @@ class Controller(Node):
             self._ff_v = float(msg.vector.x)
             self._ff_rx_s = self._now_s()
             self._ff_ref_mm = self._recent_refs.get(_stamp_ns(msg))
+            self._recent_ffs[_stamp_ns(msg)] = self._ff_v
+            if len(self._recent_ffs) > REFERENCE_MEMORY:
+                self._recent_ffs.popitem(last=False)
 
     def _on_displacement(self, msg: PointStamped) -> None:
         if not math.isfinite(msg.point.x):
@@ -209,15 +222,17 @@ class Controller(Node):
         self._y_mm = msg.point.x * 1e3
         self._y_rx_s = self._now_s()
         if self.trigger == "measurement":
-            self._step(_stamp_s(msg), self._y_rx_s)
+            target_ns = _stamp_ns(msg) + int(round(1e9 / self.rate_hz))
+            self._step(_stamp_s(msg), self._y_rx_s, target_ns)
 
     # -- the loop -------------------------------------------------------------------------------
     def _on_tick(self) -> None:
         now = self._now_s()
         self._step(now, now)
 
-    def _step(self, t_s: float, now: float) -> None:
-        """One control step at sample time ``t_s`` (s); ``now`` is the node clock (s)."""
+    def _step(self, t_s: float, now: float, target_ns: int | None = None) -> None:
+        """One control step at sample time ``t_s`` (s); ``now`` is the node clock (s);
+        ``target_ns``: stamp of the reference sample this command aims at, if known."""
         wall = time.perf_counter()
         self._count_deadline(wall)
         dt = (1.0 / self.rate_hz) if self._last_t_s is None else t_s - self._last_t_s
@@ -237,10 +252,15 @@ class Controller(Node):
             return
         self._idle_reason = ""
         ref_mm = self._ref_mm
+        ff_v = self._ff_v if ff_fresh else None
         if ff_fresh and mode != "pid" and self._ff_ref_mm is not None:
             ref_mm = self._ff_ref_mm
+        if target_ns is not None and target_ns in self._recent_refs:
+            ref_mm = self._recent_refs[target_ns]
+            if ff_fresh and target_ns in self._recent_ffs:
+                ff_v = self._recent_ffs[target_ns]
         y_mm = self._y_mm if self._y_mm is not None else ref_mm
-        u = self.hybrid.compute_command(ref_mm, y_mm, dt, self._ff_v if ff_fresh else None)
+        u = self.hybrid.compute_command(ref_mm, y_mm, dt, ff_v)
         self.pub_command.publish(Float64(data=u))
         self.step_us.append((time.perf_counter() - wall) * 1e6)
         self._saturated.append(self.hybrid.saturated)

@@ -31,7 +31,8 @@ from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 from ipmc_control.pid import ControlParameterError
 from ipmc_control.references import KINDS, Reference, make_reference
 
-REFERENCE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
+# Reliable and deep (docs/interfaces.md): in lock-step bursts no reference sample may be lost.
+REFERENCE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
                            reliability=QoSReliabilityPolicy.RELIABLE)
 # Parameter name -> (default, description); which ones each kind takes.
 GENERATOR_PARAMS = {
@@ -79,6 +80,10 @@ class ReferenceNode(Node):
             description="publication rate, Hz", read_only=True))
         self.declare_parameter("frame_id", "ipmc_clamp", ParameterDescriptor(
             description="frame of the reference point", read_only=True))
+        self.declare_parameter("preview_s", 0.0, ParameterDescriptor(
+            description="publish the reference this far ahead of the clock, s (>= 0): a "
+                        "trajectory is known in advance, and feedforward needs the next sample",
+            read_only=True))
         self.declare_parameter("kind", "sine", ParameterDescriptor(
             description=" | ".join(KINDS)))
         for name, (default, text) in GENERATOR_PARAMS.items():
@@ -90,6 +95,9 @@ class ReferenceNode(Node):
         if not self.rate_hz > 0:
             raise ControlParameterError(f"rate_hz must be > 0, got {self.rate_hz}")
         self.frame_id = self.get_parameter("frame_id").value
+        self.preview_ns = int(round(float(self.get_parameter("preview_s").value) * 1e9))
+        if self.preview_ns < 0:
+            raise ControlParameterError(f"preview_s must be >= 0 s, got {self.preview_ns * 1e-9}")
         self.generator = build_reference(self.get_parameter("kind").value, self._values())
         self._pending: Reference | None = None
         self._t0_ns: int | None = None
@@ -125,9 +133,10 @@ class ReferenceNode(Node):
         now = self.get_clock().now()
         if self._t0_ns is None:
             self._t0_ns = now.nanoseconds
-        t_s = (now.nanoseconds - self._t0_ns) * 1e-9
+        t_s = (now.nanoseconds - self._t0_ns + self.preview_ns) * 1e-9
         msg = PointStamped()
-        msg.header.stamp = now.to_msg()
+        sec, nanosec = divmod(now.nanoseconds + self.preview_ns, 1_000_000_000)
+        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
         msg.header.frame_id = self.frame_id
         msg.point.x = self.generator(t_s) * 1e-3
         self.pub.publish(msg)

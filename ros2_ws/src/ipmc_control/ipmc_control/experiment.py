@@ -1,0 +1,139 @@
+"""Closed-loop tracking experiments on the simulated IPMC, in process (pure core, no ROS).
+
+The loop is the one the node graph runs, sample by sample at ``rate_hz``:
+
+    r_k            reference (mm) at t_k
+    u_ff,k         inverse model fed the reference: step(r_k)          (modes inverse, hybrid)
+    u_k            hybrid law on r_k and the latest measurement y_{k-1}, clipped to 3 V
+    y_k            plant response to u_k held for one period (measured, mm)
+
+The feedforward is a filter of the reference alone (the inverse model's history holds the
+desired displacements and its own voltages), so the model server can compute it from the
+reference topic without seeing the controller.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .hybrid import HybridController, check_mode
+from .pid import PID
+from .references import Reference, make_reference
+
+REFERENCES = ("sine", "random", "constant")
+# The paper's section 4.4: sine 2.5 mm @ 1/2pi Hz; random sine 0-0.7 Hz over -9..4 mm; a
+# constant 4 mm hold (here -4 mm: the direction the simulated IPMC reaches under 3 V). One table
+# for the in-process loop and the reference node of the graph.
+REFERENCE_PARAMS = {
+    "sine": {"amplitude_mm": 2.5, "frequency_hz": 1.0 / (2.0 * math.pi)},
+    "random": {"band_hz": [0.0, 0.7], "range_mm": [-9.0, 4.0], "seed": 0},
+    "constant": {"value_mm": -4.0},
+}
+DEFAULT_DURATION_S = {"sine": 4 * 2 * math.pi, "random": 60.0, "constant": 60.0}
+
+
+def paper_reference(kind: str) -> Reference:
+    """The paper's reference of one of ``REFERENCES``."""
+    if kind not in REFERENCE_PARAMS:
+        raise ValueError(f"unknown reference '{kind}'; choose one of {', '.join(REFERENCES)}")
+    return make_reference(kind, **REFERENCE_PARAMS[kind])
+
+
+@dataclass
+class TrackResult:
+    """A tracking run: time (s), reference and measured tip (mm), command and feedforward (V)."""
+
+    t_s: np.ndarray
+    reference_mm: np.ndarray
+    y_mm: np.ndarray
+    u_v: np.ndarray
+    feedforward_v: np.ndarray
+
+    def summary(self) -> dict:
+        """The ``ipmc track --json`` record: rmse_mm, max_abs_mm, u_max_v, duration_s, samples."""
+        return tracking_summary(self.t_s, self.reference_mm, self.y_mm, self.u_v)
+
+
+def tracking_summary(t_s, reference_mm, y_mm, u_v) -> dict:
+    """Tracking error of a run (every sample counts, as in the paper)."""
+    err = np.asarray(reference_mm) - np.asarray(y_mm)
+    n = int(err.size)
+    return {
+        "rmse_mm": float(np.sqrt(np.mean(err ** 2))),
+        "max_abs_mm": float(np.max(np.abs(err))),
+        "u_max_v": float(np.max(np.abs(u_v))),
+        "duration_s": float(n / (1.0 / np.median(np.diff(t_s)))) if n > 1 else 0.0,
+        "samples": n,
+    }
+
+
+def run_tracking(reference: Reference, duration_s: float, mode: str, *, inverse=None,
+                 plant=None, pid: PID | None = None, rate_hz: float = 100.0) -> TrackResult:
+    """Run the closed (or open) loop on ``plant`` for ``duration_s``.
+
+    Parameters
+    ----------
+    reference : Reference
+        Desired tip displacement r(t), mm.
+    mode : {"pid", "inverse", "hybrid"}
+    inverse : fitted inverse model with ``stepper()``, optional
+        Needed for modes ``inverse`` and ``hybrid`` (e.g. ``InverseNarxModel``).
+    plant : object with ``step(u_v) -> (u_applied_v, y_mm)``, optional
+        Default: a fresh ``ipmc_driver.plant.IpmcPlant`` at ``rate_hz``.
+    pid : PID, optional
+        Default: the paper's gains K=1.2, TI=0.87 s, TD=0.13 s, |u| <= 3 V.
+    """
+    mode = check_mode(mode)
+    if mode != "pid" and inverse is None:
+        raise ValueError(f"mode '{mode}' needs an inverse model (ipmc identify --inverse)")
+    if plant is None:
+        from ipmc_driver.plant import IpmcPlant
+
+        plant = IpmcPlant(dt_s=1.0 / rate_hz)
+    dt = 1.0 / rate_hz
+    n = int(round(duration_s * rate_hz))
+    t = np.arange(n) * dt
+    r = np.asarray(reference(t), dtype=float)
+    ctrl = HybridController(pid or PID(), mode=mode)
+    ff_stepper = inverse.stepper() if mode != "pid" else None
+    y = np.empty(n)
+    u = np.empty(n)
+    ff = np.zeros(n)
+    y_last = 0.0  # the actuator starts at rest
+    for k in range(n):
+        if ff_stepper is not None:
+            ff[k] = max(-3.0, min(3.0, ff_stepper.step(r[k])))
+        cmd = ctrl.compute_command(r[k], y_last, dt, ff[k] if ff_stepper is not None else None)
+        u[k], y[k] = plant.step(cmd)
+        y_last = y[k]
+    return TrackResult(t_s=t, reference_mm=r, y_mm=y, u_v=u, feedforward_v=ff)
+
+
+def plot_tracking(result: TrackResult, path, title: str = "") -> None:
+    """Reference vs measured tip, error, and voltages, as one PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
+    axes[0].plot(result.t_s, result.reference_mm, "b-", lw=1.2, label="reference")
+    axes[0].plot(result.t_s, result.y_mm, "r--", lw=1, label="measured tip")
+    axes[0].set_ylabel("displacement (mm)")
+    axes[0].legend(loc="upper right")
+    axes[0].set_title(title)
+    axes[1].plot(result.t_s, result.reference_mm - result.y_mm, "k-", lw=0.8)
+    axes[1].set_ylabel("error (mm)")
+    axes[2].plot(result.t_s, result.u_v, "g-", lw=0.8, label="command")
+    axes[2].plot(result.t_s, result.feedforward_v, "m:", lw=0.8, label="feedforward")
+    axes[2].set_ylabel("voltage (V)")
+    axes[2].set_xlabel("time (s)")
+    axes[2].legend(loc="upper right")
+    for ax in axes:
+        ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)

@@ -1,0 +1,201 @@
+"""``ipmc track``: the paper's tracking experiments on the simulated IPMC, in process or through
+the ROS graph (separate processes over real DDS, lock-step clock).
+
+    ipmc track --model INVERSE.json --reference sine|random|constant --mode pid|inverse|hybrid
+               [--graph] [--plant-effect creep] --json OUT
+
+Both ways run the same loop (``ipmc_control.experiment``), so their RMSEs agree closely; the
+JSON is ``{"rmse_mm", "max_abs_mm", "u_max_v", "duration_s", "samples"}``. Every sample of the
+run counts, as in the paper.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .experiment import (
+    DEFAULT_DURATION_S,
+    REFERENCE_PARAMS,
+    REFERENCES,
+    paper_reference,
+    plot_tracking,
+    run_tracking,
+    tracking_summary,
+)
+from .hybrid import MODES
+
+
+def load_inverse(path: str | None, mode: str):
+    """Load the inverse model file, or None in PID mode; ``ValueError`` with one sentence."""
+    if mode == "pid":
+        return None
+    if not path:
+        raise ValueError(f"mode '{mode}' needs --model (an inverse model file from "
+                         "'ipmc identify --inverse')")
+    from ipmc_model.persistence import load_model
+
+    model = load_model(path)
+    if not hasattr(model, "stepper") or "Inverse" not in type(model).__name__:
+        raise ValueError(f"{path} holds a {type(model).__name__}, not an inverse model; make "
+                         "one with 'ipmc identify --inverse'")
+    return model
+
+
+def run_in_process(model, reference: str, mode: str, effects: list[str], duration_s: float,
+                   seed: int = 0):
+    from ipmc_driver.plant import IpmcPlant
+
+    plant = IpmcPlant(effects=effects, seed=seed)
+    return run_tracking(paper_reference(reference), duration_s, mode, inverse=model,
+                        plant=plant)
+
+
+def run_graph(model_path: str | None, reference: str, mode: str, effects: list[str],
+              duration_s: float, *, log=sys.stderr, timeout_s: float | None = None) -> dict:
+    """Run the experiment through sim_plant (lock-step), model_server, controller, reference
+    and recorder as processes; return the summary computed from the recorded bag."""
+    import rclpy
+    import rclpy.executors
+    from geometry_msgs.msg import PointStamped
+    from rclpy.qos import QoSProfile, QoSReliabilityPolicy
+
+    from ipmc_driver.dataio import DISPLACEMENT_TYPE, VOLTAGE_TYPE, read_stamped_series
+
+    from .bringup import Graph, NodeSpec, graph_specs
+
+    env = dict(os.environ)
+    env.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
+    work = Path(tempfile.mkdtemp(prefix="ipmc_track_"))
+    bag = work / "bag"
+    specs = graph_specs(rig_port=None, lockstep=True, model=model_path if mode != "pid" else None,
+                        mode=mode, reference=reference, plant_effects=effects, record=str(bag))
+    for spec in specs:
+        if spec.name == "reference":
+            spec.params.update(REFERENCE_PARAMS[reference])
+    timeout_s = timeout_s or 90.0 + 3.0 * duration_s
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("ipmc_track_probe", context=context)
+    first_ref, last_y = [], [0]
+    qos = QoSProfile(depth=100, reliability=QoSReliabilityPolicy.RELIABLE)
+
+    def stamp_ns(msg):
+        return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+    node.create_subscription(PointStamped, "/ipmc/reference",
+                             lambda m: first_ref or first_ref.append(stamp_ns(m)), qos)
+    node.create_subscription(PointStamped, "/ipmc/displacement",
+                             lambda m: last_y.__setitem__(0, stamp_ns(m)), qos)
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+
+    def spin_until(predicate, limit_s, what):
+        deadline = time.monotonic() + limit_s
+        while not predicate():
+            if graph.failed():
+                name, code = next(iter(graph.failed().items()))
+                raise RuntimeError(f"{name} exited with code {code}:\n{graph.log_tail(name)}")
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"timed out after {limit_s:.0f} s waiting for {what}")
+            executor.spin_once(timeout_sec=0.05)
+
+    t_wall = time.monotonic()
+    try:
+        with Graph(env, work / "logs") as graph:
+            plant_spec: NodeSpec = next(s for s in specs if s.name == "sim_plant")
+            for spec in specs:
+                if spec is not plant_spec:
+                    graph.start(spec)
+            need_ff = mode != "pid"
+            spin_until(lambda: node.count_subscribers("/ipmc/displacement") >= 3
+                       and node.count_publishers("/ipmc/reference") >= 1
+                       and (not need_ff or node.count_publishers("/ipmc/feedforward") >= 1),
+                       30.0, "the graph's nodes to come up")
+            graph.start(plant_spec)
+            print(f"graph up in {time.monotonic() - t_wall:.1f} s; running {duration_s:g} s "
+                  "of simulated time (lock-step)", file=log, flush=True)
+            spin_until(lambda: first_ref and last_y[0] >= first_ref[0] + duration_s * 1e9,
+                       timeout_s, f"{duration_s:g} s of simulated time")
+            exits = graph.stop_all(order=["reference", "controller", "model_server",
+                                          "sim_plant", "recorder"])
+    finally:
+        executor.remove_node(node)
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    slow = {n: t for n, t in exits.items() if t > 2.0}
+    if slow:
+        print(f"warning: slow exits after SIGINT: {slow}", file=log)
+    series = read_stamped_series(bag, {"/ipmc/reference": DISPLACEMENT_TYPE,
+                                       "/ipmc/displacement": DISPLACEMENT_TYPE,
+                                       "/ipmc/voltage": VOLTAGE_TYPE})
+    ref, disp, volt = (series[t] for t in ("/ipmc/reference", "/ipmc/displacement",
+                                           "/ipmc/voltage"))
+    t_end = first_ref[0] + int(round(duration_s * 1e9))
+    stamps = sorted(s for s in ref if first_ref[0] <= s < t_end and s in disp and s in volt)
+    if len(stamps) < 10:
+        raise RuntimeError(f"the recorded bag {bag} holds only {len(stamps)} paired samples")
+    t = (np.array(stamps) - stamps[0]) * 1e-9
+    summary = tracking_summary(t, [ref[s] * 1e3 for s in stamps],
+                               [disp[s] * 1e3 for s in stamps], [volt[s] for s in stamps])
+    print(f"graph run: {len(stamps)} samples in {time.monotonic() - t_wall:.1f} s wall; "
+          f"bag {bag}", file=log)
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="ipmc track",
+        description="Track the paper's references on the simulated IPMC with PID, inverse "
+                    "feedforward or both (hybrid); in process or through the ROS graph.")
+    parser.add_argument("--model", help="inverse model file (ipmc identify --inverse)")
+    parser.add_argument("--reference", required=True, choices=REFERENCES)
+    parser.add_argument("--mode", required=True, choices=MODES)
+    parser.add_argument("--graph", action="store_true",
+                        help="run through the node graph (separate processes, real DDS)")
+    parser.add_argument("--plant-effect", action="append", default=[],
+                        help="switch on a simulated plant effect (e.g. creep; repeatable)")
+    parser.add_argument("--seconds", type=float,
+                        help="duration, s (default: 4 periods of the sine, 60 s otherwise)")
+    parser.add_argument("--json", metavar="OUT", help="write the summary as JSON")
+    parser.add_argument("--plot", metavar="PNG", help="in-process run: write a figure")
+    args = parser.parse_args(argv)
+    duration = args.seconds or DEFAULT_DURATION_S[args.reference]
+    try:
+        model = load_inverse(args.model, args.mode)
+        if args.graph:
+            summary = run_graph(args.model, args.reference, args.mode, args.plant_effect,
+                                duration)
+        else:
+            result = run_in_process(model, args.reference, args.mode, args.plant_effect,
+                                    duration)
+            summary = result.summary()
+            if args.plot:
+                plot_tracking(result, args.plot, f"{args.reference}, {args.mode}: RMSE "
+                                                 f"{summary['rmse_mm']:.4f} mm")
+    except (ValueError, RuntimeError, TimeoutError, OSError) as exc:
+        print(f"ipmc track: {exc}", file=sys.stderr)
+        return 2
+    where = "graph" if args.graph else "in process"
+    print(f"{args.reference} / {args.mode} ({where}"
+          f"{', plant effects ' + ','.join(args.plant_effect) if args.plant_effect else ''}): "
+          f"RMSE {summary['rmse_mm']:.4f} mm, max |e| {summary['max_abs_mm']:.3f} mm, "
+          f"max |u| {summary['u_max_v']:.2f} V over {summary['duration_s']:.1f} s "
+          f"({summary['samples']} samples)")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
