@@ -16,14 +16,15 @@ $(STAMP): requirements.txt $(foreach p,$(PKGS),$(p)/setup.py)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --disable-pip-version-check -q --upgrade "pip>=23" "setuptools<80" wheel
 	$(PY) -m pip install --disable-pip-version-check -q -r requirements.txt
-	$(PY) -m pip install --disable-pip-version-check -q --no-deps $(foreach p,$(PKGS),-e $(p))
+	$(PY) -m pip install --disable-pip-version-check -q --no-deps $(foreach p,$(PKGS),-e $(p)) \
+		2> >(grep -v -e BuildBackendWarning -e '^ *!!' -e '^ *\*\*\*' >&2)
 	touch $(STAMP)
 
 demo: $(STAMP)
 	$(VENV)/bin/ipmc demo --out out
 
 test: $(STAMP)
-	$(PY) -m pytest -q tests $(foreach p,$(PKGS),$(p)/test)
+	$(PY) -m pytest -q tests $(wildcard $(addsuffix /test,$(PKGS)))
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check ros2_ws tests benchmarks
