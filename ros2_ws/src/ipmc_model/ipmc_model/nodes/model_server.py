@@ -1,0 +1,478 @@
+"""model_server: serves a fitted IPMC model on the graph (feedforward, prediction, residual).
+
+Loads ``model_file`` (forward ``lssvm-narx`` or inverse ``lssvm-narx-inverse``, as written by
+``ipmc identify ... --out MODEL``) and optionally ``inverse_model_file`` (an inverse model);
+either may be empty, and what needs a missing model is simply not published.
+
+- ``/ipmc/reference`` (PointStamped, x in m) -> ``/ipmc/feedforward`` (Vector3Stamped, x in V,
+  |x| <= ``u_max_v``, the reference's header copied, so the controller pairs them by stamp):
+  one step of the inverse model's stepper per reference sample. The voltage history the inverse
+  sees is set by ``history_voltage``: ``applied`` (the latest ``/ipmc/voltage`` applied voltage
+  when one arrived since the previous step, else the clamped feedforward), ``clamped`` or
+  ``model`` (its own unclamped output, as the in-process ``ipmc track`` loop).
+- ``/ipmc/voltage`` (Vector3Stamped, x applied V) -> ``/ipmc/predicted`` (PointStamped, x in m,
+  the voltage's header): one free-run step of the forward model per applied sample.
+- ``/ipmc/displacement`` (PointStamped, x in m) paired with the prediction of the same header
+  stamp -> ``/ipmc/residual`` (PointStamped, measured - predicted, m).
+- ``~/reload`` (std_srvs/Trigger): reload the model file(s). All or nothing: a bad file keeps the
+  models in use, and the response (success false) and the log say why.
+- ``/diagnostics`` (wall clock, every ``diagnostics_period_s``): model (loaded, kind, files),
+  feedforward (rate, clamping), residual (whiteness from ``ipmc_model.residuals.ResidualMonitor``
+  fed the one-step residual by default, ``monitor_residual``; RMS of both residuals).
+
+Each message costs one kernel row per model (two for a voltage: free-run and one-step); the
+node keeps no timers on the ROS clock, so it runs as well under ``use_sim_time:=true`` with
+``sim_plant`` in lock-step.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections import OrderedDict, deque
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PointStamped, Vector3Stamped
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.clock import Clock, ClockType
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
+from std_srvs.srv import Trigger
+
+from ipmc_model.narx import InverseNarxModel, NarxModel
+from ipmc_model.persistence import load_model
+from ipmc_model.residuals import ResidualMonitor
+
+# Every sample matters (the residual pairs samples by stamp): as sim_plant's SAMPLE_QOS.
+SAMPLE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
+                        reliability=QoSReliabilityPolicy.RELIABLE,
+                        durability=QoSDurabilityPolicy.VOLATILE)
+FEEDFORWARD_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
+                             reliability=QoSReliabilityPolicy.RELIABLE)
+DIAGNOSTICS_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
+                             reliability=QoSReliabilityPolicy.RELIABLE)
+HARDWARE_ID = "ipmc"
+U_LIMIT_V = 3.0  # the actuators' safe limit (paper section 2.1); u_max_v may only be lower
+HISTORY_VOLTAGES = ("applied", "clamped", "model")
+MONITOR_RESIDUALS = ("one_step", "free_run")
+# Unpaired predictions / measurements kept while waiting for their partner (stamps).
+PAIR_MEMORY = 256
+# Samples of history handed to new steppers after a reload (more than any sane lag depth).
+HISTORY_DEPTH = 256
+# A free-run output beyond this (mm) is a diverged model, not a displacement.
+DIVERGED_MM = 1e3
+
+
+class ModelSetError(ValueError):
+    """A model file cannot be served (unreadable, or of the wrong kind for its parameter)."""
+
+
+def load_model_set(model_file: str, inverse_model_file: str = ""):
+    """Load the forward and inverse models from the two parameters' files.
+
+    Returns
+    -------
+    (forward, inverse) : (NarxModel or None, InverseNarxModel or None)
+
+    Raises
+    ------
+    ModelSetError, ModelFileError
+        One sentence naming the file and the problem.
+    """
+    forward = inverse = None
+    if model_file:
+        m = load_model(model_file)
+        if isinstance(m, InverseNarxModel):
+            inverse = m
+        elif isinstance(m, NarxModel):
+            forward = m
+        else:
+            raise ModelSetError(f"{model_file}: a {type(m).__name__} has no step-wise API; the "
+                                "model server serves lssvm-narx and lssvm-narx-inverse models.")
+    if inverse_model_file:
+        m = load_model(inverse_model_file)
+        if not isinstance(m, InverseNarxModel):
+            raise ModelSetError(f"{inverse_model_file}: inverse_model_file holds a "
+                                f"{type(m).__name__}, not an inverse model "
+                                "(ipmc identify --inverse).")
+        if inverse is not None:
+            raise ModelSetError(f"{model_file} and {inverse_model_file} are both inverse models; "
+                                "model_file should be the forward one.")
+        inverse = m
+    if forward is not None and forward.n_inputs_ != 1:
+        raise ModelSetError(f"{model_file}: the forward model takes {forward.n_inputs_} input "
+                            "channels; the model server has only the voltage.")
+    return forward, inverse
+
+
+def _stamp_ns(msg) -> int:
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+def _describe(model) -> str:
+    if model is None:
+        return "none"
+    narx = model.narx_ if isinstance(model, InverseNarxModel) else model
+    kind = "lssvm-narx-inverse" if isinstance(model, InverseNarxModel) else "lssvm-narx"
+    return f"{kind} ({narx.regressor_.centers_.shape[0]} centres, max lag {narx.max_lag_})"
+
+
+class ModelServer(Node):
+    def __init__(self) -> None:
+        super().__init__("model_server")
+        d = ParameterDescriptor
+        self.declare_parameter("model_file", "", d(
+            description="model file (JSON) from 'ipmc identify --out': forward -> predictions "
+                        "and residual; inverse -> feedforward; '' = none", read_only=True))
+        self.declare_parameter("inverse_model_file", "", d(
+            description="inverse model file for the feedforward ('' = none)", read_only=True))
+        self.declare_parameter("u_max_v", U_LIMIT_V, d(
+            description=f"feedforward limit |u| <= u_max_v, V (0 < u_max_v <= {U_LIMIT_V})"))
+        self.declare_parameter("history_voltage", "applied", d(
+            description="voltage history of the inverse model: applied (latest /ipmc/voltage) "
+                        "| clamped (own output, limited) | model (own output)"))
+        self.declare_parameter("monitor_residual", "one_step", d(
+            description="residual fed to the whiteness monitor: one_step | free_run",
+            read_only=True))
+        self.declare_parameter("monitor_window", 500, d(
+            description="whiteness monitor window, samples (after decimation)", read_only=True))
+        self.declare_parameter("monitor_lags", 20, d(
+            description="whiteness monitor Ljung-Box lags", read_only=True))
+        self.declare_parameter("monitor_decimate", 1, d(
+            description="whiteness monitor keeps every n-th residual sample", read_only=True))
+        self.declare_parameter("diagnostics_period_s", 1.0, d(
+            description="wall-clock period of /diagnostics, s", read_only=True))
+        self.add_on_set_parameters_callback(self._validate_parameters)
+
+        g = self.get_parameter
+        self.model_file = g("model_file").value
+        self.inverse_model_file = g("inverse_model_file").value
+        self.u_max_v = float(g("u_max_v").value)
+        self.history_voltage = g("history_voltage").value
+        self.monitor_residual = g("monitor_residual").value
+        problem = self._check(u_max_v=self.u_max_v, history_voltage=self.history_voltage)
+        if self.monitor_residual not in MONITOR_RESIDUALS:
+            problem = f"monitor_residual must be one of {MONITOR_RESIDUALS}"
+        if problem:
+            raise ValueError(problem)
+        self.monitor = ResidualMonitor(window=g("monitor_window").value,
+                                       lags=g("monitor_lags").value,
+                                       decimate=g("monitor_decimate").value)
+        window = self.monitor.window * self.monitor.decimate
+        self._e_free = deque(maxlen=window)   # residuals (mm) for the RMS on /diagnostics
+        self._e_one = deque(maxlen=window)
+
+        # Models and their steppers; the histories re-seed the steppers after a reload.
+        self.forward = self.inverse = None
+        self._free = self._one = self._ff = None
+        self._one_stamp: int | None = None    # stamp of the one-step stepper's last step
+        self._sample_hist: deque = deque(maxlen=HISTORY_DEPTH)   # (u applied V, y measured mm)
+        self._ff_hist: deque = deque(maxlen=HISTORY_DEPTH)       # (y desired mm, u V)
+        self._pred: OrderedDict[int, tuple] = OrderedDict()     # stamp -> (u, y free, y one)
+        self._meas: OrderedDict[int, float] = OrderedDict()     # stamp -> y measured mm
+        self._u_applied_v: float | None = None
+        self._u_applied_new = False
+        self.loaded_at: str = "never"
+        self.load_error = ""
+        self.reloads = self.failed_reloads = 0
+        # Counters for /diagnostics.
+        self.ff_count = self.ff_clamped = self.ff_skipped = 0
+        self.pred_count = self.residual_count = self.free_resets = 0
+        self._ff_count_last = 0
+        self._diag_wall_last = time.monotonic()
+        self.ff_rate_hz = 0.0
+        self.ff_last_v = math.nan
+        ok, why = self.reload()
+        if not ok:
+            self.get_logger().error(f"no model served: {why}")
+
+        self.pub_ff = self.create_publisher(Vector3Stamped, "/ipmc/feedforward", FEEDFORWARD_QOS)
+        self.pub_pred = self.create_publisher(PointStamped, "/ipmc/predicted", SAMPLE_QOS)
+        self.pub_res = self.create_publisher(PointStamped, "/ipmc/residual", SAMPLE_QOS)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+        self.create_subscription(PointStamped, "/ipmc/reference", self._on_reference, SAMPLE_QOS)
+        self.create_subscription(Vector3Stamped, "/ipmc/voltage", self._on_voltage, SAMPLE_QOS)
+        self.create_subscription(PointStamped, "/ipmc/displacement", self._on_displacement,
+                                 SAMPLE_QOS)
+        self.create_service(Trigger, "~/reload", self._on_reload)
+        # Diagnostics on the wall clock: they keep coming when a simulated clock stalls.
+        self.create_timer(float(g("diagnostics_period_s").value), self.publish_diagnostics,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    # -- parameters -----------------------------------------------------------------------------
+    @staticmethod
+    def _check(**new) -> str:
+        if "u_max_v" in new:
+            u = new["u_max_v"]
+            if not (isinstance(u, float) and 0.0 < u <= U_LIMIT_V):
+                return f"u_max_v must be a float in (0, {U_LIMIT_V}] V, got {u!r}"
+        if "history_voltage" in new and new["history_voltage"] not in HISTORY_VOLTAGES:
+            return (f"history_voltage must be one of {HISTORY_VOLTAGES}, "
+                    f"got {new['history_voltage']!r}")
+        return ""
+
+    def _validate_parameters(self, params) -> SetParametersResult:
+        new = {p.name: p.value for p in params}
+        problem = self._check(**new)
+        if problem:
+            return SetParametersResult(successful=False, reason=problem)
+        self.u_max_v = float(new.get("u_max_v", self.u_max_v))
+        self.history_voltage = new.get("history_voltage", self.history_voltage)
+        return SetParametersResult(successful=True)
+
+    # -- models ---------------------------------------------------------------------------------
+    def reload(self) -> tuple[bool, str]:
+        """(Re)load the model file(s); all or nothing. Returns (success, message)."""
+        if not self.model_file and not self.inverse_model_file:
+            return False, "no model file given (parameters model_file, inverse_model_file)"
+        try:
+            forward, inverse = load_model_set(self.model_file, self.inverse_model_file)
+        except (ValueError, OSError) as exc:  # ModelFileError and ModelSetError are ValueErrors
+            self.load_error = str(exc)
+            return False, str(exc)
+        self.forward, self.inverse = forward, inverse
+        self._restart_steppers()
+        self.monitor.reset()
+        self._e_free.clear()
+        self._e_one.clear()
+        self.load_error = ""
+        self.loaded_at = time.strftime("%Y-%m-%d %H:%M:%S")
+        msg = f"forward {_describe(forward)}, inverse {_describe(inverse)}"
+        self.get_logger().info(f"loaded {self._files()}: {msg}")
+        return True, msg
+
+    def _files(self) -> str:
+        return " + ".join(f for f in (self.model_file, self.inverse_model_file) if f)
+
+    def _restart_steppers(self) -> None:
+        """New steppers seeded with the recent samples, so a reload does not restart from rest."""
+        self._free = self._one = self._ff = None
+        self._one_stamp = None
+        self._pred.clear()
+        if self.forward is not None:
+            self._free = self.forward.stepper(*self._history(self._sample_hist))
+            self._one = self.forward.stepper(*self._history(self._sample_hist))
+        if self.inverse is not None:
+            self._ff = self.inverse.stepper(*self._history(self._ff_hist))
+
+    @staticmethod
+    def _history(pairs) -> tuple:
+        if not pairs:
+            return None, None
+        a, b = np.array(pairs, dtype=float).T
+        return a, b
+
+    def _on_reload(self, request, response):
+        ok, msg = self.reload()
+        self.reloads += 1
+        response.success = ok
+        if ok:
+            response.message = f"reloaded {self._files()}: {msg}"
+        else:
+            self.failed_reloads += 1
+            kept = ("kept the models in use" if self.forward is not None
+                    or self.inverse is not None else "no model served")
+            response.message = f"reload failed, {kept}: {msg}"
+            self.get_logger().error(response.message)
+        return response
+
+    # -- feedforward ----------------------------------------------------------------------------
+    def _on_reference(self, msg: PointStamped) -> None:
+        if self._ff is None:
+            return
+        y_mm = msg.point.x * 1e3
+        if not math.isfinite(y_mm):
+            self.ff_skipped += 1
+            return
+        if self.history_voltage == "applied" and self._u_applied_new and self._ff_hist:
+            # The voltage that really reached the actuator replaces the last feedforward.
+            self._ff.record_applied(self._u_applied_v)
+            self._ff_hist[-1] = (self._ff_hist[-1][0], self._u_applied_v)
+        self._u_applied_new = False
+        u = self._ff.step(y_mm)
+        if not math.isfinite(u):
+            self.ff_skipped += 1
+            self.get_logger().warn("inverse model diverged: restarted it from rest",
+                                   throttle_duration_sec=1.0)
+            self._ff_hist.clear()
+            self._ff = self.inverse.stepper()
+            return
+        u_ff = min(self.u_max_v, max(-self.u_max_v, u))
+        if u_ff != u:
+            self.ff_clamped += 1
+        if self.history_voltage != "model":
+            self._ff.record_applied(u_ff)
+        self._ff_hist.append((y_mm, u_ff if self.history_voltage != "model" else u))
+        out = Vector3Stamped()
+        out.header = msg.header
+        out.vector.x = u_ff
+        self.pub_ff.publish(out)
+        self.ff_count += 1
+        self.ff_last_v = u_ff
+
+    # -- prediction and residual ----------------------------------------------------------------
+    def _on_voltage(self, msg: Vector3Stamped) -> None:
+        u = float(msg.vector.x)
+        if not math.isfinite(u):
+            return
+        self._u_applied_v, self._u_applied_new = u, True
+        if self._free is None:
+            return
+        y_free = self._free.step(u)
+        if not abs(y_free) < DIVERGED_MM:
+            self.free_resets += 1
+            self.get_logger().warn("free-run prediction diverged: restarted from the measured "
+                                   "history", throttle_duration_sec=1.0)
+            self._free = self.forward.stepper(*self._history(self._sample_hist))
+            y_free = self._free.step(u)
+            if not abs(y_free) < DIVERGED_MM:
+                return
+        y_one = self._one.step(u)
+        if not abs(y_one) < DIVERGED_MM:
+            self._one = self.forward.stepper(*self._history(self._sample_hist))
+            y_one = self._one.step(u)
+        stamp = _stamp_ns(msg)
+        self._one_stamp = stamp
+        out = PointStamped()
+        out.header = msg.header
+        out.point.x = y_free * 1e-3
+        self.pub_pred.publish(out)
+        self.pred_count += 1
+        y_meas = self._meas.pop(stamp, None)
+        if y_meas is not None:
+            self._complete(stamp, msg.header.frame_id, u, y_free, y_one, y_meas)
+        else:
+            self._remember(self._pred, stamp, (u, y_free, y_one))
+
+    def _on_displacement(self, msg: PointStamped) -> None:
+        y_mm = msg.point.x * 1e3
+        if not math.isfinite(y_mm) or self._free is None:
+            return
+        stamp = _stamp_ns(msg)
+        pred = self._pred.pop(stamp, None)
+        if pred is not None:
+            self._complete(stamp, msg.header.frame_id, *pred, y_mm)
+        else:
+            self._remember(self._meas, stamp, y_mm)
+
+    @staticmethod
+    def _remember(memory: OrderedDict, key, value) -> None:
+        memory[key] = value
+        while len(memory) > PAIR_MEMORY:
+            memory.popitem(last=False)
+
+    def _complete(self, stamp: int, frame_id: str, u: float, y_free: float, y_one: float,
+                  y_meas: float) -> None:
+        e_free = y_meas - y_free
+        out = PointStamped()
+        out.header.stamp.sec, out.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        out.header.frame_id = frame_id
+        out.point.x = e_free * 1e-3
+        self.pub_res.publish(out)
+        self.residual_count += 1
+        self._e_free.append(e_free)
+        self._sample_hist.append((u, y_meas))
+        if stamp == self._one_stamp:
+            # One-step-ahead: the next prediction starts from this measurement.
+            self._one.correct_output(y_meas)
+            e_one = y_meas - y_one
+            self._e_one.append(e_one)
+        else:
+            e_one = math.nan  # its partner came after a newer voltage: no one-step residual
+        self.monitor.update(e_one if self.monitor_residual == "one_step" else e_free)
+
+    # -- diagnostics ----------------------------------------------------------------------------
+    def publish_diagnostics(self) -> None:
+        """Publish one DiagnosticArray: model, feedforward, residual."""
+        now = time.monotonic()
+        dt = now - self._diag_wall_last
+        if dt > 0:
+            self.ff_rate_hz = (self.ff_count - self._ff_count_last) / dt
+        self._diag_wall_last, self._ff_count_last = now, self.ff_count
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [self._diag_model(), self._diag_feedforward(), self._diag_residual()]
+        self.pub_diag.publish(arr)
+
+    def _status(self, name: str, level: bytes, message: str, **values) -> DiagnosticStatus:
+        return DiagnosticStatus(
+            level=level, name=f"model_server: {name}", message=message, hardware_id=HARDWARE_ID,
+            values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+
+    def _diag_model(self) -> DiagnosticStatus:
+        info = dict(model_file=self.model_file, inverse_model_file=self.inverse_model_file,
+                    forward=_describe(self.forward), inverse=_describe(self.inverse),
+                    loaded_at=self.loaded_at, reloads=self.reloads,
+                    failed_reloads=self.failed_reloads, last_error=self.load_error)
+        if self.forward is None and self.inverse is None:
+            return self._status("model", DiagnosticStatus.ERROR,
+                                f"no model loaded: {self.load_error}", **info)
+        kinds = ", ".join(k for k, m in (("forward", self.forward), ("inverse", self.inverse))
+                          if m is not None)
+        if self.load_error:
+            return self._status("model", DiagnosticStatus.WARN,
+                                f"last reload failed, serving the previous {kinds} model",
+                                **info)
+        return self._status("model", DiagnosticStatus.OK, f"loaded ({kinds})", **info)
+
+    def _diag_feedforward(self) -> DiagnosticStatus:
+        if self._ff is None:
+            return self._status("feedforward", DiagnosticStatus.OK,
+                                "not served (no inverse model)")
+        frac = self.ff_clamped / self.ff_count if self.ff_count else 0.0
+        level = DiagnosticStatus.WARN if frac > 0.5 else DiagnosticStatus.OK
+        msg = (f"{self.ff_rate_hz:.1f} Hz, {100 * frac:.0f} % clamped" if self.ff_count
+               else "waiting for /ipmc/reference")
+        return self._status("feedforward", level, msg, rate_hz=f"{self.ff_rate_hz:.2f}",
+                            count=self.ff_count, clamped=self.ff_clamped,
+                            skipped=self.ff_skipped, last_v=f"{self.ff_last_v:.4f}",
+                            u_max_v=self.u_max_v, history_voltage=self.history_voltage)
+
+    def _diag_residual(self) -> DiagnosticStatus:
+        if self._free is None:
+            return self._status("residual", DiagnosticStatus.OK,
+                                "not served (no forward model)")
+
+        def rms(e) -> str:
+            return f"{math.sqrt(sum(x * x for x in e) / len(e)):.5f}" if e else "nan"
+
+        s = self.monitor.status
+        level = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR)[s.level]
+        return self._status("residual", level, s.message,
+                            monitor_residual=self.monitor_residual,
+                            white=s.white, stale=s.level == 2, ljung_box_p=f"{s.p_value:.4g}",
+                            window_rms_mm=f"{s.rms:.4g}", window_mean_mm=f"{s.mean:.4g}",
+                            free_run_rms_mm=rms(self._e_free), one_step_rms_mm=rms(self._e_one),
+                            predictions=self.pred_count, residuals=self.residual_count,
+                            free_run_restarts=self.free_resets)
+
+
+def main(args: list[str] | None = None) -> None:
+    argv = sys.argv if args is None else args
+    if "-h" in argv or "--help" in argv:
+        print(__doc__)
+        print("usage: model_server [--ros-args -p model_file:=MODEL.json "
+              "-p inverse_model_file:=INVERSE.json -p u_max_v:=3.0 "
+              "-p history_voltage:=applied|clamped|model -p monitor_residual:=one_step|free_run "
+              "-p use_sim_time:=true]\n"
+              "service: /model_server/reload (std_srvs/srv/Trigger)")
+        return
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = ModelServer()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

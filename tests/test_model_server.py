@@ -1,0 +1,261 @@
+"""model_server over real DDS: sim_plant and model_server as processes, this test as the rest.
+
+A small forward and inverse LSSVM-NARX are fitted here on 30 s of the simulated plant; the test
+drives the plant with a random sine and publishes a reference, then checks the feedforward (the
+reference's stamps, |u| <= 3 V, the very values of the in-process stepper), the prediction and
+residual (tracking the plant), the reload service (good file, corrupt file keeps the old
+model), /diagnostics and the exit on SIGINT.
+"""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ipmc_driver.plant import IpmcPlant
+from ipmc_driver.signals import random_sine
+
+rclpy = pytest.importorskip("rclpy")
+
+RATE_HZ = 100.0         # the test publishes commands and references at the model's rate
+RUN_S = 12.0            # graph time for the tracking checks
+U_MAX_V = 0.25          # low, so that the clamp acts on this weak inverse model
+GRACE_S = 2.0           # the SIGINT exit budget (conftest.GRACE_S)
+VENV_BIN = Path(sys.executable).parent
+
+
+@pytest.fixture(scope="module")
+def model_files(tmp_path_factory):
+    """Forward and inverse models fitted on 30 s of the plant (fixed-size LSSVM, 300 centres)."""
+    from ipmc_model.lssvm import FixedSizeLSSVMRegressor
+    from ipmc_model.narx import InverseNarxModel, NarxModel
+    from ipmc_model.persistence import save_model
+
+    _, u = random_sine(30.0, 100.0, amplitude=2.5, seed=1)
+    run = IpmcPlant(seed=1).run(u)
+    reg = FixedSizeLSSVMRegressor(C=100.0, sigma=3.0, n_prototypes=300, seed=0)
+    forward = NarxModel(reg, lag_step=5).fit(run.u_v, run.y_mm)
+    inverse = InverseNarxModel(reg, lag_step=5).fit(run.u_v, run.y_mm)
+    d = tmp_path_factory.mktemp("models")
+    return (forward, save_model(forward, d / "forward.json"),
+            inverse, save_model(inverse, d / "inverse.json"))
+
+
+def _stamp_ns(msg) -> int:
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+class Probe:
+    """The test's side of the graph: publishes commands and references, records the rest."""
+
+    def __init__(self, context):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PointStamped, Vector3Stamped
+        from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
+        from std_msgs.msg import Float64
+        from std_srvs.srv import Trigger
+
+        qos = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
+                         reliability=QoSReliabilityPolicy.RELIABLE)
+        self.node = rclpy.create_node("model_server_probe", context=context)
+        self.pub_cmd = self.node.create_publisher(Float64, "/ipmc/command", 10)
+        self.pub_ref = self.node.create_publisher(PointStamped, "/ipmc/reference", qos)
+        self.got = {name: [] for name in ("feedforward", "predicted", "residual",
+                                          "displacement", "voltage")}
+        self.diag = []
+        for name, typ in (("feedforward", Vector3Stamped), ("predicted", PointStamped),
+                          ("residual", PointStamped), ("displacement", PointStamped),
+                          ("voltage", Vector3Stamped)):
+            self.node.create_subscription(typ, f"/ipmc/{name}", self.got[name].append, qos)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
+        self.reload = self.node.create_client(Trigger, "/model_server/reload")
+        self.refs = []       # (stamp ns, reference mm) as published
+        self._k = 0
+        _, self._u = random_sine(RUN_S + 10.0, RATE_HZ, amplitude=2.5, seed=11)
+        self._timer = None
+
+    def _on_diag(self, msg) -> None:
+        for s in msg.status:
+            if s.name.startswith("model_server: "):
+                self.diag.append(s)
+
+    def start_driving(self) -> None:
+        self._timer = self.node.create_timer(1.0 / RATE_HZ, self._tick)
+
+    def _tick(self) -> None:
+        from geometry_msgs.msg import PointStamped
+        from std_msgs.msg import Float64
+
+        k = self._k
+        self._k += 1
+        self.pub_cmd.publish(Float64(data=float(self._u[k % self._u.size])))
+        t = k / RATE_HZ
+        r_mm = 2.0 * math.sin(2 * math.pi * 0.3 * t) - (8.0 if (t % 4.0) > 3.5 else 0.0)
+        msg = PointStamped()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = 1000 + k // 100, (k % 100) * 10_000_000
+        msg.header.frame_id = "ipmc_clamp"
+        msg.point.x = r_mm * 1e-3
+        self.refs.append((_stamp_ns(msg), r_mm))
+        self.pub_ref.publish(msg)
+
+    def call_reload(self, spin, timeout_s: float = 10.0):
+        from std_srvs.srv import Trigger
+
+        future = self.reload.call_async(Trigger.Request())
+        assert spin(self.node, future.done, timeout_s), "no answer from /model_server/reload"
+        return future.result()
+
+    def latest(self, concern: str):
+        found = [s for s in self.diag if s.name == f"model_server: {concern}"]
+        return found[-1] if found else None
+
+
+def _value(status, key: str) -> str:
+    return {kv.key: kv.value for kv in status.values}[key]
+
+
+def test_serves_feedforward_prediction_residual_and_reload(
+        model_files, processes, rclpy_context, spin):
+    forward, forward_file, inverse, inverse_file = model_files
+    processes.start_node("sim_plant", "sim_plant", {"rate_hz": 100.0})
+    processes.start_node("model_server", "model_server", {
+        "model_file": forward_file, "inverse_model_file": inverse_file,
+        "history_voltage": "clamped", "u_max_v": U_MAX_V, "diagnostics_period_s": 0.5})
+    probe = Probe(rclpy_context)
+    node = probe.node
+    try:
+        def matched() -> bool:
+            return (probe.pub_ref.get_subscription_count() > 0
+                    and probe.pub_cmd.get_subscription_count() > 0
+                    and node.count_publishers("/ipmc/feedforward") > 0
+                    and node.count_publishers("/ipmc/residual") > 0
+                    and len(probe.got["residual"]) > 0)
+
+        assert spin(node, matched, 30.0), (
+            "graph did not come up:\n" + processes.log("model_server"))
+        spin(node, lambda: False, 0.3)   # let the reader side of every match settle
+        probe.start_driving()
+        assert spin(node, lambda: probe._k >= RUN_S * RATE_HZ, RUN_S + 20.0)
+        probe._timer.cancel()
+        spin(node, lambda: len(probe.got["feedforward"]) >= len(probe.refs), 5.0)
+
+        # (1) Feedforward: one per reference, same stamps, |u| <= 3 V, the in-process values.
+        ff = probe.got["feedforward"]
+        assert [_stamp_ns(m) for m in ff] == [s for s, _ in probe.refs]
+        u_ff = np.array([m.vector.x for m in ff])
+        assert np.all(np.abs(u_ff) <= U_MAX_V)
+        stepper = inverse.stepper()
+        expected = []
+        for _, r_mm in probe.refs:
+            u = min(U_MAX_V, max(-U_MAX_V, stepper.step(r_mm)))
+            stepper.record_applied(u)
+            expected.append(u)
+        np.testing.assert_allclose(u_ff, expected, rtol=0, atol=1e-9)
+        assert np.sum(np.abs(u_ff) == U_MAX_V) > 0, "the clamp should have acted"
+
+        # (2, 3) Prediction and residual: paired by stamp, residual = measured - predicted,
+        # small against the motion once the free run has left its start.
+        pred = {_stamp_ns(m): m.point.x for m in probe.got["predicted"]}
+        meas = {_stamp_ns(m): m.point.x for m in probe.got["displacement"]}
+        res = {_stamp_ns(m): m.point.x for m in probe.got["residual"]}
+        assert len(res) > 0.9 * RUN_S * 100.0
+        both = [s for s in res if s in meas and s in pred]   # the probe may have joined late
+        assert len(both) > 0.9 * len(res)
+        for stamp in both:
+            assert res[stamp] == pytest.approx(meas[stamp] - pred[stamp], abs=1e-12)
+        stamps = sorted(res)[200:]       # skip the first 2 s (free run from rest)
+        e_mm = np.array([res[s] for s in stamps]) * 1e3
+        y_mm = np.array([meas[s] for s in stamps]) * 1e3
+        rms_e, sd_y = float(np.sqrt(np.mean(e_mm ** 2))), float(np.std(y_mm))
+        print(f"residual rms {rms_e:.3f} mm, displacement sd {sd_y:.3f} mm, "
+              f"{len(res)} residuals, {len(ff)} feedforwards, "
+              f"{int(np.sum(np.abs(u_ff) == U_MAX_V))} clamped")
+        assert sd_y > 0.5
+        assert rms_e < 0.35 * sd_y
+
+        # (5) Diagnostics: the model, the feedforward and the residual, each its own status.
+        assert spin(node, lambda: probe.latest("residual") is not None, 5.0)
+        assert probe.latest("model").level == b"\x00"
+        assert "forward.json" in _value(probe.latest("model"), "model_file")
+        assert float(_value(probe.latest("feedforward"), "rate_hz")) >= 0.0
+        assert float(_value(probe.latest("residual"), "free_run_rms_mm")) < 0.35 * sd_y
+
+        # (4) Reload: a good file succeeds; a corrupt one keeps the old model and says why.
+        assert probe.reload.wait_for_service(timeout_sec=5.0)
+        good = probe.call_reload(spin)
+        assert good.success, good.message
+        forward_file.write_text('{"format": "ipmc-ros-model", not json')
+        bad = probe.call_reload(spin)
+        assert not bad.success
+        assert "forward.json" in bad.message and "JSON" in bad.message, bad.message
+        assert "kept the models in use" in bad.message
+        n_pred, n_ff = len(probe.got["predicted"]), len(probe.got["feedforward"])
+        probe.start_driving()
+        assert spin(node, lambda: len(probe.got["predicted"]) > n_pred + 100
+                    and len(probe.got["feedforward"]) > n_ff + 50, 10.0), \
+            "no longer publishing after a failed reload"
+        probe.diag.clear()
+        assert spin(node, lambda: probe.latest("model") is not None, 5.0)
+        assert probe.latest("model").level == b"\x01"
+        assert "not valid JSON" in _value(probe.latest("model"), "last_error")
+        assert "reload failed" in processes.log("model_server")
+    finally:
+        node.destroy_node()
+
+    # Exit on SIGINT within the grace period.
+    took = processes.stop("model_server")
+    assert took < GRACE_S, processes.log("model_server")
+
+
+def test_starts_without_a_good_file_and_loads_it_on_reload(
+        model_files, processes, rclpy_context, spin, tmp_path):
+    forward, forward_file, _, _ = model_files
+    target = tmp_path / "late.json"
+    processes.start_node("model_server", "model_server", {"model_file": target})
+    probe = Probe(rclpy_context)
+    node = probe.node
+    try:
+        assert probe.reload.wait_for_service(timeout_sec=20.0), processes.log("model_server")
+        assert spin(node, lambda: probe.latest("model") is not None, 5.0)
+        assert probe.latest("model").level == b"\x02"
+        assert "no such model file" in probe.latest("model").message
+        missing = probe.call_reload(spin)
+        assert not missing.success and "no model served" in missing.message
+        from ipmc_model.persistence import save_model
+
+        save_model(forward, target)
+        late = probe.call_reload(spin)
+        assert late.success, late.message
+        assert "lssvm-narx" in late.message
+
+        # The feedforward limit can be lowered at run time, never raised past 3 V.
+        from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+        from rcl_interfaces.srv import SetParameters
+
+        client = node.create_client(SetParameters, "/model_server/set_parameters")
+        assert client.wait_for_service(timeout_sec=5.0)
+        results = []
+        for value in (5.0, 2.0):
+            req = SetParameters.Request(parameters=[Parameter(
+                name="u_max_v", value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE,
+                                                     double_value=value))])
+            future = client.call_async(req)
+            assert spin(node, future.done, 5.0)
+            results.append(future.result().results[0])
+        assert not results[0].successful and "u_max_v" in results[0].reason
+        assert results[1].successful
+    finally:
+        node.destroy_node()
+    assert processes.stop("model_server") < GRACE_S
+
+
+def test_help_prints_usage_and_exits_zero(ros_env):
+    out = subprocess.run([str(VENV_BIN / "model_server"), "--help"], env=ros_env,
+                         capture_output=True, text=True, timeout=30)
+    assert out.returncode == 0
+    assert "usage: model_server" in out.stdout and "reload" in out.stdout
