@@ -1,0 +1,486 @@
+"""Residual diagnosis: fit a baseline, analyse its held-out residual, add the missing effect.
+
+Procedure (:func:`diagnose`):
+
+1. Split the record chronologically: the first 70 % fits and tunes, the last 30 % is held out
+   for every number reported.
+2. Baseline: the given model, or an LSSVM-NARX whose C and sigma are tuned by ABC on the fit
+   part (free-run objective, the tuner's own 70/30 split inside the fit part). The lag spacing
+   follows the input bandwidth (:func:`choose_lag_step`).
+3. Residual analysis of the baseline on the held-out part, free-run and one-step: ACF, CCF
+   with the input (95 % bounds), Welch spectrum, Ljung-Box.
+4. Greedy search: every candidate effect (:data:`~ipmc_model.effects.EFFECT_NAMES`) is fitted
+   on the fit part on top of the current model. It is accepted only if
+   (a) *evidence*: the held-out free-run residual of the current model is significantly
+   correlated (Bartlett bound, 95 %) with the effect's signature, i.e. what the fitted effect
+   adds to the prediction on the held-out input; and
+   (b) *improvement*: the held-out free-run RMSE falls by at least ``threshold`` (default
+   10 %) relative to the current model; for the effects whose fit refits the baseline NARX
+   (delay, dead zone, asymmetry, rate dependence, saturation) by at least the larger of
+   ``threshold`` and twice the *refit spread*, the relative RMSE change of the current model
+   merely refitted on other evenly spaced rows (80 % and 90 % of ``max_rows``): an
+   improvement a refit alone can give is no evidence of a missing effect.
+   The best accepted candidate is added, and the search repeats on the rest (at most
+   ``max_effects`` effects). With no missing effect nothing passes.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ipmc_driver.validation import as_signal, same_length
+
+from .effects import (
+    EFFECT_NAMES,
+    PARAM_UNITS,
+    REFIT_EFFECTS,
+    AugmentedModel,
+    fit_effect,
+    save_augmented,
+)
+from .lssvm import LSSVMRegressor
+from .narx import NarxModel
+from .persistence import save_model
+from .residuals import acf, ccf, correlation_test, ljung_box, spectrum, whiteness_summary
+from .tuning import tune_lssvm_narx
+
+FIT_FRACTION = 0.7
+DEFAULT_THRESHOLD = 0.10
+METRIC = ("free-run RMSE (mm) on the held-out last 30 % of the record, simulated from the "
+          "input alone after the first max-lag measured samples (skipped), with the input "
+          "history of the fit part warming the effects' states")
+
+
+def choose_lag_step(u, rate_hz: float) -> int:
+    """Lag spacing s (samples) so that the NARX lags span the input's time scale.
+
+    s = round(rate / (8 f95)), f95 the frequency below which 95 % of the input power lies
+    (Welch), limited to [1, 0.1 s * rate]: three lags then cover about a third of the fastest
+    significant input period instead of a few samples of a finely sampled record.
+    """
+    u = as_signal("u", u, min_length=16)
+    f, p = spectrum(u, rate_hz, nperseg=min(u.size, 4096))
+    c = np.cumsum(p)
+    f95 = float(f[np.searchsorted(c, 0.95 * c[-1])]) if c[-1] > 0 else rate_hz / 2
+    f95 = max(f95, f[1] if f.size > 1 else 1e-3)
+    return int(np.clip(round(rate_hz / (8.0 * f95)), 1, max(1, round(0.1 * rate_hz))))
+
+
+@dataclass
+class Candidate:
+    """One evaluation of a candidate effect in one greedy round."""
+
+    effect: str
+    rmse_mm: float
+    accepted: bool
+    evidence: dict
+    model: AugmentedModel | None = field(default=None, repr=False)
+
+    def as_dict(self) -> dict:
+        return {"effect": self.effect, "rmse_mm": self.rmse_mm, "accepted": self.accepted,
+                "evidence": self.evidence}
+
+
+@dataclass
+class Diagnosis:
+    """Result of :func:`diagnose` (all RMSE values free-run, held-out, mm)."""
+
+    model_before: AugmentedModel
+    model_after: AugmentedModel
+    rmse_before_mm: float
+    rmse_after_mm: float
+    candidates: list
+    effects_found: list
+    analysis_before: dict
+    analysis_after: dict
+    t_s: np.ndarray
+    u_v: np.ndarray
+    y_mm: np.ndarray
+    cut: int
+    tuning: dict
+    threshold: float
+    seconds: float
+    outputs: dict = field(default_factory=dict, repr=False)
+
+
+def _held_out(model: AugmentedModel, u, y, cut):
+    """Free-run and one-step predictions on the held-out part (mm)."""
+    L = model.max_lag_
+    uh, yh = u[cut:], y[cut:]
+    t0 = cut * model.dt_s
+    free = model.simulate(uh, yh[:L], u_past=u[:cut], t0_s=t0)
+    one = model.predict(uh, yh, u_past=u[:cut], t0_s=t0)
+    return free, one
+
+
+def _rmse(a, b, skip):
+    d = (a - b)[skip:]
+    return float(np.sqrt(np.mean(d * d))) if np.all(np.isfinite(d)) else float("inf")
+
+
+def analyse(model: AugmentedModel, u, y, cut: int, max_lag: int = 25) -> dict:
+    """Held-out residual analysis of ``model``: free-run and one-step residuals with their
+    whiteness summaries (ACF/CCF shares outside 95 % bounds, Ljung-Box), RMSE (mm)."""
+    free, one = _held_out(model, u, y, cut)
+    L = model.max_lag_
+    yh, uh = y[cut:], u[cut:]
+    e_free = (yh - free)[L:]
+    e_one = (yh - one)[L:]
+    out = {"free_run": free, "one_step": one, "e_free": e_free, "e_one": e_one,
+           "rmse_free_mm": _rmse(yh, free, L), "rmse_one_mm": _rmse(yh, one, L)}
+    if np.all(np.isfinite(e_free)):
+        out["free_run_tests"] = whiteness_summary(e_free, uh[L:], max_lag)
+    out["one_step_tests"] = whiteness_summary(e_one, uh[L:], max_lag)
+    return out
+
+
+def _template(model: AugmentedModel, max_rows: int) -> NarxModel:
+    b = model.baseline
+    reg = b.regressor_
+    return NarxModel(LSSVMRegressor(C=reg.C_, sigma=reg.sigma_), input_lags=b.input_lags,
+                     output_lags=b.output_lags, lag_step=b.lag_step,
+                     standardize=b.standardize, max_rows=max_rows)
+
+
+def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int = 0,
+             candidates=EFFECT_NAMES, threshold: float = DEFAULT_THRESHOLD,
+             max_effects: int = 3, budget: tuple[int, int] = (6, 5), max_rows: int = 1500,
+             screen_rows: int = 600, C: float | None = None, sigma: float | None = None,
+             lag_step: int | None = None, progress=None) -> Diagnosis:
+    """Diagnose the model of a record and augment it with the physical effects it lacks.
+
+    Parameters
+    ----------
+    t_s, u_v, y_mm : array_like, shape (N,)
+        Uniformly sampled time (s), input (V) and displacement (mm).
+    model : AugmentedModel, optional
+        Baseline (e.g. from :func:`~ipmc_model.effects.load_augmented`); default: identify an
+        LSSVM-NARX on the fit part.
+    seed : int
+        Seed of the tuning and the prototype choice.
+    candidates : sequence of str
+        Effects to try (default all of :data:`~ipmc_model.effects.EFFECT_NAMES`).
+    threshold : float
+        Smallest relative held-out free-run RMSE reduction for accepting an effect.
+    max_effects : int
+        Most effects added (greedy rounds).
+    budget : (int, int)
+        ABC sources x cycles for tuning the baseline's C and sigma.
+    max_rows : int
+        Regressor rows (evenly spaced) each exact LSSVM is fitted on; bounds time and memory.
+    screen_rows : int
+        Rows of the cheaper models scoring parameter grids (delay, dead zone, ...).
+    C, sigma : float, optional
+        Skip tuning and use these LSSVM hyperparameters (tests).
+    lag_step : int, optional
+        NARX lag spacing; default :func:`choose_lag_step`.
+    progress : callable, optional
+        ``progress(message: str)`` for progress lines (the CLI prints them to stderr).
+    """
+    t0_wall = time.perf_counter()
+    say = progress or (lambda msg: None)
+    t = as_signal("t_s", t_s, min_length=50)
+    u = as_signal("u_v", u_v, min_length=50)
+    y = as_signal("y_mm", y_mm, min_length=50)
+    same_length(t_s=t, u_v=u, y_mm=y)
+    unknown = set(candidates) - set(EFFECT_NAMES)
+    if unknown:
+        raise ValueError(f"unknown candidate effects {sorted(unknown)}; known: "
+                         f"{', '.join(EFFECT_NAMES)}")
+    if not 0.0 < threshold < 1.0:
+        raise ValueError(f"threshold must be in (0, 1), got {threshold}")
+    dt = float(np.median(np.diff(t)))
+    rate = 1.0 / dt
+    n = u.size
+    cut = int(round(FIT_FRACTION * n))
+    uf, yf = u[:cut], y[:cut]
+    tuning: dict = {}
+    if model is None:
+        step = choose_lag_step(uf, rate) if lag_step is None else int(lag_step)
+        if C is None or sigma is None:
+            say(f"tuning the baseline LSSVM-NARX (lag step {step}) by ABC "
+                f"({budget[0]} sources x {budget[1]} cycles) on the fit part")
+            res = tune_lssvm_narx(uf, yf, lag_step=step, n_sources=budget[0],
+                                  n_cycles=budget[1], seed=seed,
+                                  max_train_rows=min(800, max_rows),
+                                  progress=lambda c, nc, best, nf: say(
+                                      f"  ABC cycle {c}/{nc}: best validation free-run RMSE "
+                                      f"{best:.4g} mm ({nf} fits)"))
+            C, sigma = res.C, res.sigma
+            tuning = {"C": C, "sigma": sigma, "lag_step": step, "objective": "free_run",
+                      "nfev": res.nfev, "seconds": res.seconds}
+        else:
+            tuning = {"C": float(C), "sigma": float(sigma), "lag_step": step,
+                      "objective": "given"}
+        narx = NarxModel(LSSVMRegressor(C=C, sigma=sigma), lag_step=step, max_rows=max_rows)
+        before = AugmentedModel.identify(narx, uf, yf, (), dt)
+    else:
+        if model.effects:
+            say(f"the given model already has effects {model.effect_names}")
+        before = model
+        narx = _template(model, max_rows)
+        tuning = {"C": narx.regressor.C, "sigma": narx.regressor.sigma,
+                  "lag_step": narx.lag_step, "objective": "given model"}
+    screen = NarxModel(LSSVMRegressor(C=narx.regressor.C, sigma=narx.regressor.sigma),
+                       input_lags=narx.input_lags, output_lags=narx.output_lags,
+                       lag_step=narx.lag_step, max_rows=screen_rows)
+    ana_before = analyse(before, u, y, cut)
+    rmse_before = ana_before["rmse_free_mm"]
+    say(f"baseline: held-out free-run RMSE {rmse_before:.4f} mm, one-step "
+        f"{ana_before['rmse_one_mm']:.4f} mm")
+
+    current, ana_cur, rmse_cur = before, ana_before, rmse_before
+
+    def refit_spread(cur, rm_cur):
+        devs = []
+        for share in (0.8, 0.9):
+            alt = copy.deepcopy(narx)
+            alt.max_rows = max(50, int(share * max_rows))
+            with np.errstate(all="ignore"):
+                m_alt = cur.refit(alt, uf, yf)
+                f_alt, _ = _held_out(m_alt, u, y, cut)
+            r_alt = _rmse(y[cut:], f_alt, m_alt.max_lag_)
+            devs.append(abs(r_alt - rm_cur) / rm_cur if np.isfinite(r_alt) else 1.0)
+        return max(devs)
+
+    found: list[str] = []
+    evaluated: list[Candidate] = []
+    remaining = [c for c in candidates if c not in before.effect_names]
+    for rnd in range(1, max_effects + 1):
+        if not remaining:
+            break
+        round_cands = []
+        spread = refit_spread(current, rmse_cur)
+        say(f"round {rnd}: refit spread {100 * spread:.1f} % (held-out free-run RMSE change "
+            "of the current model refitted on other rows)")
+        for name in remaining:
+            tc = time.perf_counter()
+            try:
+                with np.errstate(all="ignore"):
+                    m, eff = fit_effect(name, current, narx, uf, yf, screen_narx=screen)
+                    free, _ = _held_out(m, u, y, cut)
+            except (ValueError, np.linalg.LinAlgError) as exc:
+                cand = Candidate(name, float("inf"), False,
+                                 {"round": rnd, "error": str(exc),
+                                  "text": f"could not be fitted: {exc}"})
+                evaluated.append(cand)
+                say(f"round {rnd}: {name}: could not be fitted ({exc})")
+                continue
+            L = m.max_lag_
+            rm = _rmse(y[cut:], free, L)
+            e_cur = ana_cur["e_free"]
+            sig = (free - ana_cur["free_run"])[L:]
+            if np.all(np.isfinite(sig)) and np.all(np.isfinite(e_cur)):
+                test = correlation_test(e_cur, sig)
+            else:
+                test = {"r": 0.0, "bound": 1.0, "significant": False, "ratio": 0.0}
+            gain = 1.0 - rm / rmse_cur if np.isfinite(rm) and rmse_cur > 0 else 0.0
+            need = max(threshold, 2.0 * spread) if name in REFIT_EFFECTS else threshold
+            passes = bool(test["significant"] and test["r"] > 0 and gain >= need)
+            ev = {"round": rnd, "params": dict(eff.params), "describe": eff.describe(),
+                  "signature_corr": test["r"], "signature_bound_95": test["bound"],
+                  "significant": bool(test["significant"] and test["r"] > 0),
+                  "improvement": gain, "threshold": need, "refit_spread": spread,
+                  "seconds": time.perf_counter() - tc}
+            ev["text"] = (f"residual vs {name} signature r = {test['r']:.3f} "
+                          f"(95 % bound {test['bound']:.3f}); held-out free-run RMSE "
+                          f"{rmse_cur:.4f} -> {rm:.4f} mm ({100 * gain:+.1f} %, needs "
+                          f"{100 * need:.0f} %)")
+            cand = Candidate(name, rm, False, ev, m)
+            cand.passes = passes
+            round_cands.append(cand)
+            evaluated.append(cand)
+            say(f"round {rnd}: {name}: {eff.describe()}; {ev['text']}")
+        passing = [c for c in round_cands if c.passes]
+        if not passing:
+            break
+        best = min(passing, key=lambda c: c.rmse_mm)
+        best.accepted = True
+        found.append(best.effect)
+        current = best.model
+        ana_cur = analyse(current, u, y, cut)
+        rmse_cur = ana_cur["rmse_free_mm"]
+        remaining = [c for c in remaining if c != best.effect]
+        say(f"accepted {best.effect}: held-out free-run RMSE now {rmse_cur:.4f} mm")
+    for c in evaluated:
+        c.model = None if not c.accepted else c.model
+    return Diagnosis(before, current, rmse_before, rmse_cur, evaluated, found, ana_before,
+                     ana_cur, t, u, y, cut, tuning, threshold, time.perf_counter() - t0_wall)
+
+
+# -- report ------------------------------------------------------------------------------------
+def _finite(x):
+    return float(x) if np.isfinite(x) else None
+
+
+def write_report(d: Diagnosis, out_dir, data_label: str = "data") -> dict:
+    """Write ``summary.json``, ``report.md``, the figures and both model files to ``out_dir``.
+
+    Returns the summary dict (exactly the keys of the command's contract).
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    meta = {"data": data_label, "fit_fraction": FIT_FRACTION, "samples": int(d.u_v.size),
+            "rate_hz": 1.0 / d.model_before.dt_s, "tuning": d.tuning}
+    p_before = save_model(d.model_before.baseline, out / "model_before.json",
+                          metadata=meta) if not d.model_before.effects else \
+        save_augmented(d.model_before, out / "model_before.json", metadata=meta)
+    p_after = save_augmented(d.model_after, out / "model_after.json",
+                             metadata={**meta, "effects_found": d.effects_found})
+    summary = {
+        "effects_found": list(d.effects_found),
+        "rmse_before_mm": _finite(d.rmse_before_mm),
+        "rmse_after_mm": _finite(d.rmse_after_mm),
+        "metric": METRIC,
+        "candidates": [c.as_dict() for c in d.candidates],
+        "model_before": str(p_before),
+        "model_after": str(p_after),
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_jsonable) + "\n")
+    figs = _figures(d, out)
+    (out / "report.md").write_text(_markdown(d, summary, figs, data_label))
+    return summary
+
+
+def _jsonable(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, float) and not np.isfinite(o):
+        return None
+    raise TypeError(type(o).__name__)
+
+
+def _markdown(d: Diagnosis, s: dict, figs: list[str], label: str) -> str:
+    n = d.u_v.size
+    rate = 1.0 / d.model_before.dt_s
+    lines = [f"# Residual diagnosis of `{label}`", "",
+             f"{n} samples at {rate:.4g} Hz; fit and tuning on the first {d.cut} "
+             f"({100 * FIT_FRACTION:.0f} %), every number below on the last {n - d.cut} "
+             f"(held out). Baseline: LSSVM-NARX, {_tuning_text(d.tuning)}. "
+             f"Run time {d.seconds:.1f} s.", "",
+             f"Metric: {METRIC}.", "",
+             f"Decision rule: an effect is accepted when the held-out free-run residual is "
+             f"significantly (95 %, Bartlett bound) and positively correlated with the effect's "
+             f"signature AND the held-out free-run RMSE falls by at least "
+             f"{100 * d.threshold:.0f} %; effects are added one at a time (greedy).", "",
+             "## Before and after", "",
+             "| model | effects | free-run RMSE (mm) | one-step RMSE (mm) | "
+             "Ljung-Box p (one-step) | ACF outside 95 % (free-run) |",
+             "|---|---|---|---|---|---|"]
+    for name, m, a in (("before", d.model_before, d.analysis_before),
+                       ("after", d.model_after, d.analysis_after)):
+        ft = a.get("free_run_tests", {})
+        lines.append(f"| {name} | {', '.join(m.effect_names) or 'none'} | "
+                     f"{a['rmse_free_mm']:.4f} | {a['rmse_one_mm']:.4f} | "
+                     f"{a['one_step_tests']['ljung_box_p']:.3g} | "
+                     f"{ft.get('acf_outside', float('nan')):.2f} |")
+    lines += ["", f"Effects found: **{', '.join(s['effects_found']) or 'none'}**.", ""]
+    if d.model_after.effects:
+        lines += ["## Fitted effects (physical units)", "", "| effect | parameter | value | "
+                  "unit |", "|---|---|---|---|"]
+        for e in d.model_after.effects:
+            for k, v in e.params.items():
+                lines.append(f"| {e.name} | {k} | {v:.4g} | {PARAM_UNITS[k]} |")
+        lines.append("")
+    lines += ["## Candidates", "", "| round | effect | held-out free-run RMSE (mm) | accepted "
+              "| evidence |", "|---|---|---|---|---|"]
+    for c in d.candidates:
+        rm = f"{c.rmse_mm:.4f}" if np.isfinite(c.rmse_mm) else "n/a"
+        lines.append(f"| {c.evidence.get('round', '')} | {c.effect} | {rm} | "
+                     f"{'yes' if c.accepted else 'no'} | {c.evidence.get('text', '')}"
+                     f"{'; ' + c.evidence['describe'] if 'describe' in c.evidence else ''} |")
+    lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figs] + [""]
+    return "\n".join(lines)
+
+
+def _tuning_text(t: dict) -> str:
+    if not t:
+        return "given"
+    return (f"C = {t.get('C', float('nan')):.4g}, sigma = {t.get('sigma', float('nan')):.4g}, "
+            f"lag step {t.get('lag_step')} ({t.get('objective')})")
+
+
+def _figures(d: Diagnosis, out: Path) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = []
+    L0, L1 = d.model_before.max_lag_, d.model_after.max_lag_
+    th = d.t_s[d.cut:]
+    fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    axes[0].plot(th, d.y_mm[d.cut:], lw=1.0, label="measured")
+    axes[0].plot(th, d.analysis_before["free_run"], lw=0.9, label="before, free-run")
+    axes[0].plot(th, d.analysis_after["free_run"], lw=0.9, ls="--", label="after, free-run")
+    axes[0].set_ylabel("displacement (mm)")
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[1].plot(th[L0:], d.analysis_before["e_free"], lw=0.9, label="before")
+    axes[1].plot(th[L1:], d.analysis_after["e_free"], lw=0.9, label="after")
+    axes[1].set_ylabel("free-run residual (mm)")
+    axes[1].set_xlabel("time (s), held-out part")
+    axes[1].legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    names.append("residual_before_after.png")
+    fig.savefig(out / names[-1], dpi=100)
+    plt.close(fig)
+
+    max_lag = 40
+    fig, axes = plt.subplots(2, 2, figsize=(10, 6))
+    for col, kind in enumerate(("e_free", "e_one")):
+        for a, lab in ((d.analysis_before, "before"), (d.analysis_after, "after")):
+            e = a[kind]
+            if not np.all(np.isfinite(e)) or e.size < 2 * max_lag:
+                continue
+            ac = acf(e, max_lag)
+            cc = ccf(d.u_v[d.cut:][-e.size:], e, max_lag)
+            axes[0, col].plot(ac.lags, ac.values, marker=".", lw=0.8, label=lab)
+            axes[1, col].plot(cc.lags, cc.values, marker=".", lw=0.8, label=lab)
+            b_a, b_c = ac.bound, cc.bound
+        mode = "free-run" if kind == "e_free" else "one-step"
+        for row, title in ((0, f"ACF of the {mode} residual"),
+                           (1, f"CCF input -> {mode} residual")):
+            ax = axes[row, col]
+            b = b_a if row == 0 else b_c
+            ax.axhspan(-b, b, color="grey", alpha=0.25, label="95 % bound")
+            ax.set_title(title, fontsize=9)
+            ax.set_xlabel("lag (samples)")
+            ax.legend(fontsize=7)
+    fig.tight_layout()
+    names.append("acf_ccf.png")
+    fig.savefig(out / names[-1], dpi=100)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    rate = 1.0 / d.model_before.dt_s
+    for a, lab in ((d.analysis_before, "before"), (d.analysis_after, "after")):
+        e = a["e_free"]
+        if np.all(np.isfinite(e)) and e.size > 16:
+            f, p = spectrum(e, rate, nperseg=min(e.size, 4096))
+            ax.loglog(f[1:], p[1:], lw=0.9, label=lab)
+    ax.set_xlabel("frequency (Hz)")
+    ax.set_ylabel("PSD of free-run residual (mm^2/Hz)")
+    ax.legend()
+    fig.tight_layout()
+    names.append("residual_spectrum.png")
+    fig.savefig(out / names[-1], dpi=100)
+    plt.close(fig)
+    return names
+
+
+def lb_p(e, lags: int = 20) -> float:
+    """Ljung-Box p-value of a residual (convenience for scripts)."""
+    return ljung_box(e, lags)["p_value"]
+
+
+def print_progress(msg: str) -> None:
+    """Progress line to stderr (the CLI's ``progress``)."""
+    print(msg, file=sys.stderr, flush=True)
+

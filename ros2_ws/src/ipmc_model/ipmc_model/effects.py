@@ -1,0 +1,707 @@
+"""Physical effects that augment a baseline LSSVM-NARX model, and the augmented model itself.
+
+An :class:`AugmentedModel` wraps a fitted :class:`~ipmc_model.narx.NarxModel` (the baseline)
+between *input effects*, applied to the voltage before the baseline, and *output effects*,
+applied to the baseline's output z (mm) to give the displacement y (mm)::
+
+    u --[delay, dead_zone, asymmetry, rate_dependence]--> v --[NARX]--> z --[creep, drift,
+    saturation]--> y
+
+Each effect is a small physical block with parameters in physical units (seconds, volts, mm,
+per minute), not a bigger black box:
+
+============== ======== ==================================================================
+effect         side     block (k: sample, dt: sample period, t: time since record start)
+============== ======== ==================================================================
+creep          output   y = z + c, c_k = a c_{k-1} + (1 - a) g u_{k-1}, a = exp(-dt / tau_s);
+                        slow first-order relaxation driven by the input, g (mm/V) of either
+                        sign (g < 0 relaxes back against the bending)
+drift          output   y = (1 - gain_loss_per_min t/60) z + offset_mm_per_min t/60
+saturation     output   y = limit_mm tanh(z / limit_mm)
+delay          input    v_k = u_{k - d}, d = delay_s / dt (transport delay)
+dead_zone      input    v = sign(u) max(|u| - width_v, 0)
+asymmetry      input    v = u for u >= 0, negative_gain_ratio u for u < 0
+rate_dependence input   an extra input channel, the voltage rate du/dt (V/s) low-passed with
+                        tau_s: the bending depends on how fast the voltage changes
+============== ======== ==================================================================
+
+Fitting (:func:`fit_effect`): creep and drift are additive/multiplicative terms on the output
+of the current model, which is kept as it is; their parameters come from least squares on its
+free-run residual on the fit data (creep: tau on a log grid from seconds to minutes). The
+other effects change what the NARX sees, so the baseline NARX is refitted on the data seen
+through the effect (input transformed; saturation: output through artanh) for each value of a
+one-dimensional parameter grid, scored by free-run RMSE on an internal validation slice (the
+last quarter) of the fit data.
+
+Inversion (feedforward control): :meth:`AugmentedModel.inverse_stepper` wraps an inverse NARX
+fitted in the baseline's space (:meth:`AugmentedModel.fit_inverse`). For creep, at each step
+the creep state c_k (known from the voltages already applied) is subtracted from the desired
+displacement, the baseline inverse gives the voltage for the rest, and the applied voltage
+then advances the creep state. Drift and saturation are inverted the same way, dead zone and
+asymmetry by their inverse static maps; delay and rate dependence are not invertible step by
+step (a delay needs reference preview) and raise ``ValueError``.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+from scipy.signal import lfilter
+
+from ipmc_driver.validation import as_signal, same_length
+
+from .errors import ModelFileError
+from .narx import InverseNarxModel, NarxModel
+from .persistence import load_model, read_model_document, save_model
+
+EFFECT_NAMES = ("creep", "drift", "delay", "rate_dependence", "asymmetry", "dead_zone",
+                "saturation")
+OUTPUT_EFFECTS = ("creep", "drift", "saturation")
+INPUT_EFFECTS = ("delay", "dead_zone", "asymmetry", "rate_dependence")
+#: Effects whose fit refits the baseline NARX (the others keep it fixed).
+REFIT_EFFECTS = ("delay", "dead_zone", "asymmetry", "rate_dependence", "saturation")
+
+#: Units of each effect parameter (for reports).
+PARAM_UNITS = {
+    "tau_s": "s", "gain_mm_per_v": "mm/V", "gain_loss_per_min": "1/min",
+    "offset_mm_per_min": "mm/min", "delay_s": "s", "width_v": "V",
+    "negative_gain_ratio": "1", "limit_mm": "mm",
+}
+
+AUGMENTED_FORMAT = "ipmc-ros-augmented-model"
+AUGMENTED_FORMAT_VERSION = 1
+
+
+# -- the effects --
+class Effect:
+    """One physical effect with fixed parameters (physical units); see the module table.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`EFFECT_NAMES`.
+    **params : float
+        The effect's parameters (keys as in the module table).
+    """
+
+    _KEYS = {
+        "creep": ("tau_s", "gain_mm_per_v"),
+        "drift": ("gain_loss_per_min", "offset_mm_per_min"),
+        "saturation": ("limit_mm",),
+        "delay": ("delay_s",),
+        "dead_zone": ("width_v",),
+        "asymmetry": ("negative_gain_ratio",),
+        "rate_dependence": ("tau_s",),
+    }
+
+    def __init__(self, name: str, **params):
+        if name not in EFFECT_NAMES:
+            raise ValueError(f"unknown effect {name!r}; known: {', '.join(EFFECT_NAMES)}")
+        keys = self._KEYS[name]
+        if set(params) != set(keys):
+            raise ValueError(f"effect {name!r} needs parameters {list(keys)}, "
+                             f"got {sorted(params)}")
+        self.name = name
+        self.params = {k: float(params[k]) for k in keys}
+        for k, v in self.params.items():
+            if not math.isfinite(v):
+                raise ValueError(f"effect {name!r}: parameter {k} must be finite, got {v}")
+        if name in ("creep", "rate_dependence") and self.params["tau_s"] <= 0:
+            raise ValueError(f"effect {name!r}: tau_s must be > 0, got {self.params['tau_s']}")
+        if name == "saturation" and self.params["limit_mm"] <= 0:
+            raise ValueError(f"saturation: limit_mm must be > 0, got {self.params['limit_mm']}")
+        if name == "asymmetry" and self.params["negative_gain_ratio"] <= 0:
+            raise ValueError("asymmetry: negative_gain_ratio must be > 0")
+        if name in ("delay", "dead_zone") and list(self.params.values())[0] < 0:
+            raise ValueError(f"effect {name!r}: parameter must be >= 0, got {self.params}")
+
+    @property
+    def side(self) -> str:
+        """``"input"`` or ``"output"``."""
+        return "output" if self.name in OUTPUT_EFFECTS else "input"
+
+    def describe(self) -> str:
+        """Parameters with units, e.g. ``tau_s = 31.2 s, gain_mm_per_v = -0.29 mm/V``."""
+        return ", ".join(f"{k} = {v:.4g} {PARAM_UNITS[k]}" for k, v in self.params.items())
+
+    def __repr__(self) -> str:
+        return f"Effect({self.name!r}, {self.describe()})"
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "params": dict(self.params)}
+
+    # -- batch (whole records; ``u`` includes the past, ``t_s`` aligned with it) --
+    def n_channels(self) -> int:
+        return 2 if self.name == "rate_dependence" else 1
+
+    def apply_input(self, v: np.ndarray, dt_s: float) -> np.ndarray:
+        """Input effect on a whole record (N,) or (N, c) -> (N,) or (N, c + 1)."""
+        p = self.params
+        if self.name == "delay":
+            d = int(round(p["delay_s"] / dt_s))
+            if d == 0:
+                return v
+            out = np.empty_like(v)
+            out[:d] = 0.0
+            out[d:] = v[:-d]
+            return out
+        if self.name == "dead_zone":
+            return np.sign(v) * np.maximum(np.abs(v) - p["width_v"], 0.0)
+        if self.name == "asymmetry":
+            return np.where(v >= 0.0, v, p["negative_gain_ratio"] * v)
+        # rate_dependence: append the low-passed voltage rate of the first channel
+        u0 = v if v.ndim == 1 else v[:, 0]
+        rate = np.diff(u0, prepend=u0[:1]) / dt_s
+        a = math.exp(-dt_s / p["tau_s"])
+        rho = lfilter([1.0 - a], [1.0, -a], rate)
+        return np.column_stack([v, rho])
+
+    def creep_state(self, u: np.ndarray, dt_s: float) -> np.ndarray:
+        """Creep c_k for every k from the input (N,) (causal: c_k uses u up to k - 1)."""
+        p = self.params
+        a = math.exp(-dt_s / p["tau_s"])
+        return lfilter([0.0, (1.0 - a) * p["gain_mm_per_v"]], [1.0, -a], u)
+
+    def forward(self, z, u, t_s, dt_s):
+        """Output effect: baseline output z (mm) -> displacement y (mm), whole record."""
+        p = self.params
+        if self.name == "creep":
+            return z + self.creep_state(u, dt_s)
+        if self.name == "drift":
+            m = t_s / 60.0
+            return (1.0 - p["gain_loss_per_min"] * m) * z + p["offset_mm_per_min"] * m
+        lim = p["limit_mm"]
+        return lim * np.tanh(z / lim)
+
+    def backward(self, y, u, t_s, dt_s):
+        """Inverse of :meth:`forward`: displacement y (mm) -> baseline output z (mm)."""
+        p = self.params
+        if self.name == "creep":
+            return y - self.creep_state(u, dt_s)
+        if self.name == "drift":
+            m = t_s / 60.0
+            g = np.maximum(1.0 - p["gain_loss_per_min"] * m, 0.05)
+            return (y - p["offset_mm_per_min"] * m) / g
+        lim = p["limit_mm"]
+        return lim * np.arctanh(np.clip(y / lim, -0.999, 0.999))
+
+    # -- streaming --
+    def runner(self, dt_s: float) -> _Runner:
+        """A per-sample state machine of this effect (used by the steppers)."""
+        return _Runner(self, dt_s)
+
+
+class _Runner:
+    """Per-sample state of one effect. Input effects: ``apply(u_k)`` records u_k and returns the
+    transformed input; ``invert(v_k)`` gives u_k without recording. Output effects:
+    ``forward(z_k, t_k)``, ``backward(y_k, t_k)`` use the state known before u_k is chosen;
+    ``push(u_k)`` then advances it."""
+
+    def __init__(self, effect: Effect, dt_s: float):
+        self.e = effect
+        self.dt_s = float(dt_s)
+        p = effect.params
+        self.c = 0.0  # creep state, mm
+        self.rho = 0.0  # low-passed rate, V/s
+        self.u_prev = 0.0
+        if effect.name == "delay":
+            self.line = deque([0.0] * int(round(p["delay_s"] / dt_s)))
+        if effect.name in ("creep", "rate_dependence"):
+            self.a = math.exp(-dt_s / p["tau_s"])
+
+    def apply(self, u_k):
+        name, p = self.e.name, self.e.params
+        if name == "delay":
+            if not self.line:
+                return u_k
+            self.line.append(u_k)
+            return self.line.popleft()
+        if name == "dead_zone":
+            return math.copysign(max(abs(u_k) - p["width_v"], 0.0), u_k)
+        if name == "asymmetry":
+            return u_k if u_k >= 0 else p["negative_gain_ratio"] * u_k
+        rate = (u_k - self.u_prev) / self.dt_s
+        self.u_prev = u_k
+        self.rho = self.a * self.rho + (1.0 - self.a) * rate
+        return (u_k, self.rho)
+
+    def invert(self, v_k):
+        name, p = self.e.name, self.e.params
+        if name == "dead_zone":
+            return 0.0 if v_k == 0.0 else math.copysign(abs(v_k) + p["width_v"], v_k)
+        if name == "asymmetry":
+            return v_k if v_k >= 0 else v_k / p["negative_gain_ratio"]
+        raise ValueError(f"the {name} effect cannot be inverted step by step"
+                         + (" (a transport delay needs reference preview)" if name == "delay"
+                            else ""))
+
+    def forward(self, z_k, t_k):
+        p = self.e.params
+        if self.e.name == "creep":
+            return z_k + self.c
+        if self.e.name == "drift":
+            m = t_k / 60.0
+            return (1.0 - p["gain_loss_per_min"] * m) * z_k + p["offset_mm_per_min"] * m
+        return p["limit_mm"] * math.tanh(z_k / p["limit_mm"])
+
+    def backward(self, y_k, t_k):
+        p = self.e.params
+        if self.e.name == "creep":
+            return y_k - self.c
+        if self.e.name == "drift":
+            m = t_k / 60.0
+            g = max(1.0 - p["gain_loss_per_min"] * m, 0.05)
+            return (y_k - p["offset_mm_per_min"] * m) / g
+        lim = p["limit_mm"]
+        return lim * math.atanh(min(max(y_k / lim, -0.999), 0.999))
+
+    def push(self, u_k):
+        if self.e.name == "creep":
+            self.c = self.a * self.c + (1.0 - self.a) * self.e.params["gain_mm_per_v"] * u_k
+
+
+# -- the augmented model --
+class AugmentedModel:
+    """A fitted baseline NARX model with physical effects around it (see the module docstring).
+
+    Parameters
+    ----------
+    baseline : NarxModel (fitted)
+        Fitted on the data seen through ``effects`` (transformed input, effect-free output).
+    effects : sequence of Effect
+        In the order they were added; input effects act in this order on u, output effects in
+        this order on z (the last added is outermost).
+    dt_s : float
+        Sample period (s) of the data the model was fitted on (creep, delay, rate, drift time).
+
+    Notes
+    -----
+    Time ``t_s`` (drift) counts from the start of the record the model was identified on;
+    :meth:`simulate` takes ``t0_s`` for a later start and ``u_past`` for the input history
+    (creep state, delay line) before the first sample.
+    """
+
+    def __init__(self, baseline: NarxModel, effects=(), dt_s: float = 0.01):
+        if not isinstance(baseline, NarxModel):
+            raise ValueError(f"baseline must be a NarxModel, got {type(baseline).__name__}")
+        if not dt_s > 0:
+            raise ValueError(f"dt_s must be > 0, got {dt_s}")
+        self.baseline = baseline
+        self.effects = list(effects)
+        self.dt_s = float(dt_s)
+
+    @property
+    def max_lag_(self) -> int:
+        return int(getattr(self.baseline, "max_lag_", 0))
+
+    @property
+    def effect_names(self) -> list[str]:
+        return [e.name for e in self.effects]
+
+    def _inputs(self):
+        return [e for e in self.effects if e.side == "input"]
+
+    def _outputs(self):
+        return [e for e in self.effects if e.side == "output"]
+
+    def _context(self, u, u_past, t0_s):
+        u = as_signal("u", u, min_length=self.max_lag_ + 1)
+        past = np.zeros(0) if u_past is None else as_signal("u_past", u_past)
+        ua = np.concatenate([past, u])
+        ta = float(t0_s) + (np.arange(ua.size) - past.size) * self.dt_s
+        return u, ua, ta, past.size
+
+    def to_baseline_space(self, u, y=None, *, u_past=None, t0_s: float = 0.0):
+        """The data as the baseline sees it: (v, z) with v (N,) or (N, c) and z (N,) or None."""
+        u, ua, ta, n0 = self._context(u, u_past, t0_s)
+        v = ua
+        for e in self._inputs():
+            v = e.apply_input(v, self.dt_s)
+        z = None
+        if y is not None:
+            y = as_signal("y", y)
+            same_length(u=u, y=y)
+            za = np.concatenate([np.zeros(n0), y])
+            for e in reversed(self._outputs()):
+                za = e.backward(za, ua, ta, self.dt_s)
+            z = za[n0:]
+        return v[n0:], z
+
+    def _from_baseline_space(self, z, u, u_past, t0_s):
+        u, ua, ta, n0 = self._context(u, u_past, t0_s)
+        ya = np.concatenate([np.zeros(n0), z])
+        for e in self._outputs():
+            ya = e.forward(ya, ua, ta, self.dt_s)
+        return ya[n0:]
+
+    def simulate(self, u, y_init=None, *, u_past=None, t0_s: float = 0.0) -> np.ndarray:
+        """Free-run simulation (mm) from the input ``u`` (N,) (V).
+
+        Parameters
+        ----------
+        u : array_like, shape (N,)
+            Input (V).
+        y_init : array_like, shape (max_lag_,), optional
+            Measured first outputs (mm), as :meth:`NarxModel.simulate`; default rest.
+        u_past : array_like, optional
+            Input before ``u`` (V), oldest first: warms the creep state and delay line.
+        t0_s : float
+            Time of ``u[0]`` since the start of the identification record (drift).
+        """
+        v, _ = self.to_baseline_space(u, u_past=u_past, t0_s=t0_s)
+        z_init = None
+        L = self.max_lag_
+        if y_init is not None and L:
+            yi = np.atleast_1d(np.asarray(y_init, dtype=float))
+            if yi.shape != (L,) or not np.all(np.isfinite(yi)):
+                raise ValueError(f"y_init must be {L} finite values (max lag), got {yi.shape}")
+            uu, ua, ta, n0 = self._context(u, u_past, t0_s)
+            za = np.concatenate([np.zeros(n0), yi, np.zeros(uu.size - L)])
+            for e in reversed(self._outputs()):
+                za = e.backward(za, ua, ta, self.dt_s)
+            z_init = za[n0 : n0 + L]
+        z = self.baseline.simulate(v, z_init)
+        return self._from_baseline_space(z, u, u_past, t0_s)
+
+    def predict(self, u, y, *, u_past=None, t0_s: float = 0.0) -> np.ndarray:
+        """One-step-ahead prediction (mm) from input ``u`` and measured output ``y``."""
+        v, z = self.to_baseline_space(u, y, u_past=u_past, t0_s=t0_s)
+        zh = self.baseline.predict(v, z)
+        return self._from_baseline_space(zh, u, u_past, t0_s)
+
+    @classmethod
+    def identify(cls, narx: NarxModel, u, y, effects=(), dt_s: float = 0.01) -> AugmentedModel:
+        """Fit ``narx`` (unfitted template) with fixed ``effects`` on a record (u V, y mm)
+        starting at t = 0; returns the fitted model."""
+        return cls(narx, effects, dt_s).refit(narx, u, y)
+
+    def refit(self, narx: NarxModel, u, y, effects=None) -> AugmentedModel:
+        """A new model: ``effects`` (default these) and ``narx`` (unfitted) fitted on (u, y)
+        seen through them. The record starts at t = 0."""
+        m = AugmentedModel(self.baseline, self.effects if effects is None else effects,
+                           self.dt_s)
+        v, z = m.to_baseline_space(u, y)
+        m.baseline = copy.deepcopy(narx).fit(v, z)
+        return m
+
+    # -- step by step --
+    def stepper(self, t0_s: float = 0.0) -> AugmentedStepper:
+        """Sample-by-sample free-run predictor from rest; see :class:`AugmentedStepper`."""
+        return AugmentedStepper(self, t0_s)
+
+    def fit_inverse(self, u, y, inverse: InverseNarxModel | None = None) -> InverseNarxModel:
+        """Fit an inverse NARX (Eq. 19) of the baseline in its own space (v, z) from the
+        record (u V, y mm) the model was identified on; for :meth:`inverse_stepper`."""
+        if any(e.name in ("delay", "rate_dependence") for e in self.effects):
+            raise ValueError("a model with delay or rate_dependence cannot be inverted step by "
+                             "step")
+        v, z = self.to_baseline_space(u, y)
+        inv = InverseNarxModel() if inverse is None else copy.deepcopy(inverse)
+        return inv.fit(v, z)
+
+    def inverse_stepper(self, inverse: InverseNarxModel, t0_s: float = 0.0
+                        ) -> AugmentedInverseStepper:
+        """Feedforward compensator ``step(y_desired_mm) -> u_v``; see
+        :class:`AugmentedInverseStepper`."""
+        return AugmentedInverseStepper(self, inverse, t0_s)
+
+
+class AugmentedStepper:
+    """The augmented model one sample at a time: ``step(u_k) -> y_k`` (V -> mm), free run."""
+
+    def __init__(self, model: AugmentedModel, t0_s: float = 0.0):
+        self._m = model
+        self._in = [e.runner(model.dt_s) for e in model._inputs()]
+        self._out = [e.runner(model.dt_s) for e in model._outputs()]
+        self._base = model.baseline.stepper()
+        self._k = 0
+        self._t0 = float(t0_s)
+
+    def step(self, u_k: float) -> float:
+        t_k = self._t0 + self._k * self._m.dt_s
+        v = float(u_k)
+        for r in self._in:
+            v = r.apply(v) if not isinstance(v, tuple) else v
+        y = self._base.step(np.asarray(v, dtype=float))
+        for r in self._out:
+            y = r.forward(y, t_k)
+        for r in self._out:
+            r.push(float(u_k))
+        self._k += 1
+        return y
+
+
+class AugmentedInverseStepper:
+    """Feedforward voltage from the inverse of an augmented model, one sample at a time.
+
+    ``step(y_desired_mm) -> u_v``: the output effects are removed from the desired displacement
+    with the state known before u_k (creep: z_d = y_d - c_k), the baseline inverse gives the
+    baseline-space input, the input effects' inverse maps give u_k. Unless told otherwise
+    (``record_applied``), u_k is taken as applied when the next step starts, which advances the
+    creep state.
+
+    Parameters
+    ----------
+    model : AugmentedModel
+    inverse : InverseNarxModel
+        Fitted by :meth:`AugmentedModel.fit_inverse` (baseline space).
+    t0_s : float
+        Time of the first step since the identification record's start (drift).
+    """
+
+    def __init__(self, model: AugmentedModel, inverse: InverseNarxModel, t0_s: float = 0.0):
+        for e in model.effects:
+            if e.name in ("delay", "rate_dependence"):
+                raise ValueError(f"the {e.name} effect cannot be inverted step by step")
+        self._m = model
+        self._in = [e.runner(model.dt_s) for e in model._inputs()]
+        self._out = [e.runner(model.dt_s) for e in model._outputs()]
+        self._inv = inverse.stepper()
+        self._k = 0
+        self._t0 = float(t0_s)
+        self._pending: tuple[float, float] | None = None  # (u applied, v returned)
+
+    def _commit(self) -> None:
+        if self._pending is None:
+            return
+        u, v_returned = self._pending
+        v = u
+        for r in self._in:
+            v = r.apply(v)
+        if v != v_returned:
+            self._inv.record_applied(v)
+        for r in self._out:
+            r.push(u)
+        self._k += 1
+        self._pending = None
+
+    def step(self, y_desired_mm: float) -> float:
+        """Desired displacement (mm) -> feedforward voltage (V)."""
+        self._commit()
+        t_k = self._t0 + self._k * self._m.dt_s
+        z = float(y_desired_mm)
+        for r in reversed(self._out):
+            z = r.backward(z, t_k)
+        v = self._inv.step(z)
+        u = v
+        for r in reversed(self._in):
+            u = r.invert(u)
+        self._pending = (u, v)
+        return u
+
+    def record_applied(self, u_applied_v: float) -> None:
+        """The voltage that really reached the actuator at the last step (V)."""
+        if self._pending is not None:
+            self._pending = (float(u_applied_v), self._pending[1])
+
+
+# -- persistence --
+def save_augmented(model: AugmentedModel, path, *, metadata: dict | None = None) -> Path:
+    """Save an augmented model: ``path`` (JSON: effects, dt_s) and its baseline as a plain
+    model file beside it (``<stem>.baseline.json`` + ``.npz``, readable by ``load_model``).
+
+    Returns the JSON path written.
+    """
+    path = Path(path)
+    if path.suffix != ".json":
+        path = path.with_name(path.name + ".json")
+    base_path = save_model(model.baseline, path.with_name(path.stem + ".baseline.json"),
+                           metadata={"role": "baseline of an augmented model"})
+    doc = {
+        "format": AUGMENTED_FORMAT,
+        "format_version": AUGMENTED_FORMAT_VERSION,
+        "kind": "augmented-lssvm-narx",
+        "units": {"input": "V", "output": "mm", "time": "s"},
+        "dt_s": model.dt_s,
+        "baseline_file": base_path.name,
+        "effects": [e.as_dict() for e in model.effects],
+        "metadata": metadata or {},
+    }
+    path.write_text(json.dumps(doc, indent=2) + "\n")
+    return path
+
+
+def load_augmented(path, dt_s: float | None = None) -> AugmentedModel:
+    """Load a model file as an :class:`AugmentedModel`.
+
+    An augmented model file gives its baseline and effects; a plain ``lssvm-narx`` file
+    (``ipmc identify``) gives a model without effects (``dt_s`` from the argument, its
+    metadata's ``rate_hz``, or 0.01 s). Anything else raises ``ModelFileError``.
+    """
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ModelFileError(f"{path}: no such model file.") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        raise ModelFileError(f"{path}: not a model file (not readable JSON).") from None
+    if isinstance(doc, dict) and doc.get("format") == AUGMENTED_FORMAT:
+        if not isinstance(doc.get("format_version"), int) or \
+                doc["format_version"] > AUGMENTED_FORMAT_VERSION:
+            raise ModelFileError(f"{path}: unsupported augmented format version "
+                                 f"{doc.get('format_version')!r}.")
+        try:
+            base = load_model(path.parent / doc["baseline_file"])
+            effects = [Effect(e["name"], **e["params"]) for e in doc["effects"]]
+            m = AugmentedModel(base, effects, float(doc["dt_s"]))
+        except (KeyError, TypeError) as exc:
+            raise ModelFileError(f"{path}: corrupt augmented model ({exc!r}).") from None
+        m.metadata_ = doc.get("metadata", {})
+        return m
+    read_model_document(path)  # raises ModelFileError with the reason if not a model file
+    base = load_model(path)
+    if not isinstance(base, NarxModel):
+        raise ModelFileError(f"{path}: a {type(base).__name__} cannot be a baseline here; "
+                             "give an lssvm-narx forward model.")
+    if dt_s is None:
+        rate = base.metadata_.get("rate_hz")
+        dt_s = 1.0 / float(rate) if rate else 0.01
+    m = AugmentedModel(base, (), dt_s)
+    m.metadata_ = base.metadata_
+    return m
+
+
+# -- fitting the effects --
+def _free_run_rmse(model: AugmentedModel, u, y, u_past=None, t0_s=0.0) -> float:
+    L = model.max_lag_
+    ys = model.simulate(u, y[:L], u_past=u_past, t0_s=t0_s)
+    if not np.all(np.isfinite(ys)):
+        return float("inf")
+    return float(np.sqrt(np.mean((ys[L:] - y[L:]) ** 2)))
+
+
+def _validate_on_slice(model_fn, effects, u, y, split: float):
+    """Fit effects + baseline on the first ``split`` of (u, y), free-run RMSE on the rest."""
+    cut = int(round(split * u.size))
+    m = model_fn(effects, u[:cut], y[:cut])
+    return _free_run_rmse(m, u[cut:], y[cut:], u_past=u[:cut], t0_s=cut * m.dt_s)
+
+
+def _creep_basis(u, dt_s, tau_s):
+    a = math.exp(-dt_s / tau_s)
+    return lfilter([0.0, 1.0 - a], [1.0, -a], u)
+
+
+def _fit_creep(model, narx, u, y, t, iterations):
+    """Creep on the free-run residual of the current model (kept fixed): tau by a log grid
+    from seconds to minutes, gain by least squares (with an intercept that is not kept)."""
+    dt = model.dt_s
+    T = u.size * dt
+    taus = np.geomspace(max(0.5, 20 * dt), min(600.0, max(2.0 * T, 2.0)), 32)
+    L = model.max_lag_
+    r = (y - model.simulate(u, y[:L]))[L:]
+    best = None
+    for tau in taus:
+        x = _creep_basis(u, dt, tau)[L:]
+        A = np.column_stack([x, np.ones_like(x)])
+        coef, *_ = np.linalg.lstsq(A, r, rcond=None)
+        sse = float(np.sum((r - A @ coef) ** 2))
+        if best is None or sse < best[0]:
+            best = (sse, tau, coef[0])
+    eff = Effect("creep", tau_s=float(best[1]), gain_mm_per_v=float(best[2]))
+    return AugmentedModel(model.baseline, model.effects + [eff], dt), eff
+
+
+def _fit_drift(model, narx, u, y, t, iterations):
+    """Drift on the free-run output z of the current model (kept fixed): y - z regressed on
+    z t and t (least squares)."""
+    L = model.max_lag_
+    z = model.simulate(u, y[:L])
+    mins = t / 60.0
+    A = np.column_stack([z * mins, mins])[L:]
+    coef, *_ = np.linalg.lstsq(A, (y - z)[L:], rcond=None)
+    eff = Effect("drift", gain_loss_per_min=float(-coef[0]), offset_mm_per_min=float(coef[1]))
+    return AugmentedModel(model.baseline, model.effects + [eff], model.dt_s), eff
+
+
+def _grid(name, u, y, dt):
+    umax = float(np.max(np.abs(u)))
+    ymax = float(np.max(np.abs(y)))
+    if name == "delay":
+        n = np.unique(np.round(np.geomspace(1, max(2, 0.5 / dt), 10)).astype(int))
+        return [{"delay_s": float(k * dt)} for k in n if k >= 1]
+    if name == "dead_zone":
+        return [{"width_v": f * umax} for f in (0.02, 0.04, 0.07, 0.1, 0.14, 0.2, 0.3)]
+    if name == "asymmetry":
+        return [{"negative_gain_ratio": r} for r in (0.5, 0.67, 0.8, 1.25, 1.5, 2.0)]
+    if name == "saturation":
+        return [{"limit_mm": f * ymax} for f in (1.03, 1.08, 1.15, 1.3, 1.5, 2.0, 3.0)]
+    if name == "rate_dependence":
+        return [{"tau_s": ts} for ts in (2 * dt, 0.05, 0.2, 1.0)]
+    raise ValueError(name)
+
+
+def fit_effect(name: str, model: AugmentedModel, narx: NarxModel, u, y, *,
+               screen_narx: NarxModel | None = None, iterations: int = 2,
+               val_fraction: float = 0.25) -> tuple[AugmentedModel, Effect]:
+    """Add the effect ``name`` to ``model`` and fit it, with the baseline, on (u, y).
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`EFFECT_NAMES` not yet in ``model``.
+    model : AugmentedModel
+        The current model (fitted on the same record).
+    narx : NarxModel
+        Unfitted baseline template (hyperparameters, lags) refitted with the effect.
+    u, y : array_like, shape (N,)
+        The fit record (V, mm), starting at t = 0. The held-out part is never seen here.
+    screen_narx : NarxModel, optional
+        Cheaper template for the one-dimensional parameter searches (default ``narx``).
+    iterations : int
+        Alternations between the effect's least squares and the baseline refit (creep, drift).
+    val_fraction : float
+        Share at the end of (u, y) scoring the parameter searches (free-run RMSE).
+
+    Returns
+    -------
+    (AugmentedModel, Effect)
+        The refitted model with the effect appended, and the fitted effect.
+    """
+    if name not in EFFECT_NAMES:
+        raise ValueError(f"unknown effect {name!r}; known: {', '.join(EFFECT_NAMES)}")
+    if name in model.effect_names:
+        raise ValueError(f"the model already has the {name} effect")
+    u = as_signal("u", u)
+    y = as_signal("y", y)
+    same_length(u=u, y=y)
+    t = np.arange(u.size) * model.dt_s
+    if name == "creep":
+        return _fit_creep(model, narx, u, y, t, iterations)
+    if name == "drift":
+        return _fit_drift(model, narx, u, y, t, iterations)
+    screen = narx if screen_narx is None else screen_narx
+
+    def build(effects, uu, yy):
+        return model.refit(screen, uu, yy, effects)
+
+    best = None
+    for params in _grid(name, u, y, model.dt_s):
+        eff = Effect(name, **params)
+        try:
+            with np.errstate(all="ignore"):
+                score = _validate_on_slice(build, model.effects + [eff], u, y, 1 - val_fraction)
+        except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+            continue
+        if best is None or score < best[0]:
+            best = (score, eff)
+    if best is None:
+        raise ValueError(f"no {name} parameter could be fitted on this record")
+    eff = best[1]
+    return model.refit(narx, u, y, model.effects + [eff]), eff
+
+
+def signature(effect: Effect, before: AugmentedModel, after: AugmentedModel, u, *,
+              u_past=None, t0_s: float = 0.0, y_init=None) -> np.ndarray:
+    """What the fitted effect adds to the free-run prediction on a record (mm): the prediction
+    of the augmented model minus the model's before it, both simulated from ``u``."""
+    L = before.max_lag_
+    y0 = None if y_init is None else np.asarray(y_init, dtype=float)[:L]
+    a = after.simulate(u, y0, u_past=u_past, t0_s=t0_s)
+    b = before.simulate(u, y0, u_past=u_past, t0_s=t0_s)
+    return a - b
