@@ -133,3 +133,13 @@ def test_bad_parameter_file_fails_with_a_clear_message(tmp_path):
     bad.write_text("[1, 2")
     with pytest.raises(ValueError, match="cannot read plant parameters"):
         load_plant_params(bad)
+
+
+def test_sample_stamps_never_repeat_or_overflow_nanoseconds():
+    pytest.importorskip("rclpy")
+    from ipmc_driver.nodes.sim_plant import to_time_msg
+
+    stamps = [to_time_msg(k * 0.01) for k in range(20000)]
+    ns = [s.sec * 1_000_000_000 + s.nanosec for s in stamps]
+    assert all(0 <= s.nanosec < 1_000_000_000 for s in stamps)
+    assert ns == [k * 10_000_000 for k in range(20000)]

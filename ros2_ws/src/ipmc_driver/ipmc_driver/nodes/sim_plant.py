@@ -41,8 +41,9 @@ CLOCK_MODES = ("realtime", "lockstep")
 
 
 def to_time_msg(t_s: float) -> Time:
-    sec = math.floor(t_s)
-    return Time(sec=int(sec), nanosec=int(round((t_s - sec) * 1e9)) % 1_000_000_000)
+    # Round once to integer nanoseconds: rounding the fraction alone can give 1e9 ns.
+    sec, nanosec = divmod(int(round(t_s * 1e9)), 1_000_000_000)
+    return Time(sec=sec, nanosec=nanosec)
 
 
 class SimPlant(Node):
