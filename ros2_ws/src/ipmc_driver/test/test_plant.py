@@ -139,7 +139,9 @@ def test_sample_stamps_never_repeat_or_overflow_nanoseconds():
     pytest.importorskip("rclpy")
     from ipmc_driver.nodes.sim_plant import to_time_msg
 
-    stamps = [to_time_msg(k * 0.01) for k in range(20000)]
+    # The node computes (k + 1) * dt - dt: 31.01 - 0.01 = 30.999999999999996, whose fraction
+    # rounds to 1e9 ns.
+    stamps = [to_time_msg((k + 1) * 0.01 - 0.01) for k in range(20000)]
     ns = [s.sec * 1_000_000_000 + s.nanosec for s in stamps]
     assert all(0 <= s.nanosec < 1_000_000_000 for s in stamps)
     assert ns == [k * 10_000_000 for k in range(20000)]
