@@ -110,6 +110,22 @@ class Probe:
         assert spin(self.node, future.done, timeout_s), "no answer from /model_server/reload"
         return future.result()
 
+    def set_parameter(self, spin, name: str, value):
+        """Set one parameter of model_server; return its SetParametersResult."""
+        from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+        from rcl_interfaces.srv import SetParameters
+
+        if not hasattr(self, "_params"):
+            self._params = self.node.create_client(SetParameters, "/model_server/set_parameters")
+        assert self._params.wait_for_service(timeout_sec=5.0)
+        pv = (ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
+              if isinstance(value, float)
+              else ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value))
+        future = self._params.call_async(
+            SetParameters.Request(parameters=[Parameter(name=name, value=pv)]))
+        assert spin(self.node, future.done, 5.0), "no answer from set_parameters"
+        return future.result().results[0]
+
     def latest(self, concern: str):
         found = [s for s in self.diag if s.name == f"model_server: {concern}"]
         return found[-1] if found else None
@@ -195,6 +211,8 @@ def test_serves_feedforward_prediction_residual_and_reload(
         assert "forward.json" in bad.message and "JSON" in bad.message, bad.message
         assert "kept the models in use" in bad.message
         n_pred, n_ff = len(probe.got["predicted"]), len(probe.got["feedforward"])
+        # ... and with the applied voltages as the inverse model's history (the default).
+        assert probe.set_parameter(spin, "history_voltage", "applied").successful
         probe.start_driving()
         assert spin(node, lambda: len(probe.got["predicted"]) > n_pred + 100
                     and len(probe.got["feedforward"]) > n_ff + 50, 10.0), \
@@ -204,6 +222,7 @@ def test_serves_feedforward_prediction_residual_and_reload(
         assert probe.latest("model").level == b"\x01"
         assert "not valid JSON" in _value(probe.latest("model"), "last_error")
         assert "reload failed" in processes.log("model_server")
+        assert all(abs(m.vector.x) <= U_MAX_V for m in probe.got["feedforward"][n_ff:])
     finally:
         node.destroy_node()
 
@@ -234,21 +253,10 @@ def test_starts_without_a_good_file_and_loads_it_on_reload(
         assert "lssvm-narx" in late.message
 
         # The feedforward limit can be lowered at run time, never raised past 3 V.
-        from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-        from rcl_interfaces.srv import SetParameters
-
-        client = node.create_client(SetParameters, "/model_server/set_parameters")
-        assert client.wait_for_service(timeout_sec=5.0)
-        results = []
-        for value in (5.0, 2.0):
-            req = SetParameters.Request(parameters=[Parameter(
-                name="u_max_v", value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE,
-                                                     double_value=value))])
-            future = client.call_async(req)
-            assert spin(node, future.done, 5.0)
-            results.append(future.result().results[0])
-        assert not results[0].successful and "u_max_v" in results[0].reason
-        assert results[1].successful
+        too_high = probe.set_parameter(spin, "u_max_v", 5.0)
+        assert not too_high.successful and "u_max_v" in too_high.reason
+        assert probe.set_parameter(spin, "u_max_v", 2.0).successful
+        assert not probe.set_parameter(spin, "history_voltage", "measured").successful
     finally:
         node.destroy_node()
     assert processes.stop("model_server") < GRACE_S
