@@ -117,8 +117,10 @@ def graph_specs(*, rig_port: str | None, lockstep: bool, model: str | None, mode
             "/ipmc/command", "/ipmc/voltage", "/ipmc/displacement", "/ipmc/reference",
             "/ipmc/feedforward", "/ipmc/predicted", "/ipmc/residual"]}))
     if model:
+        # clamped: the feedforward is a filter of the reference alone, as in ipmc track.
         specs.append(NodeSpec("model_server", "model_server",
-                              {**common, "inverse_model_file": str(Path(model).resolve())}))
+                              {**common, "inverse_model_file": str(Path(model).resolve()),
+                               "history_voltage": "clamped"}))
     specs.append(NodeSpec("controller", "controller", {
         **common, "mode": mode, "rate_hz": rate_hz,
         "trigger": "measurement" if sim_time else "timer"}))

@@ -8,8 +8,9 @@ The loop is the one the node graph runs, sample by sample at ``rate_hz``:
     y_k            plant response to u_k held for one period (measured, mm)
 
 The feedforward is a filter of the reference alone (the inverse model's history holds the
-desired displacements and its own voltages), so the model server can compute it from the
-reference topic without seeing the controller.
+desired displacements and its own voltages limited to 3 V: the model server's
+``history_voltage:=clamped``), so it can be computed from the reference topic without seeing
+the controller.
 """
 
 from __future__ import annotations
@@ -106,6 +107,7 @@ def run_tracking(reference: Reference, duration_s: float, mode: str, *, inverse=
     for k in range(n):
         if ff_stepper is not None:
             ff[k] = max(-3.0, min(3.0, ff_stepper.step(r[k])))
+            ff_stepper.record_applied(ff[k])  # the voltage history holds what can be applied
         cmd = ctrl.compute_command(r[k], y_last, dt, ff[k] if ff_stepper is not None else None)
         u[k], y[k] = plant.step(cmd)
         y_last = y[k]
