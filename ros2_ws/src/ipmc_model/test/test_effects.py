@@ -1,0 +1,169 @@
+"""Tests of ipmc_model.effects: blocks, augmented model, streaming, inverse, save/load."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from ipmc_driver.plant import IpmcPlant
+from ipmc_driver.signals import random_sine, random_steps
+from ipmc_model.effects import (
+    EFFECT_NAMES,
+    AugmentedModel,
+    Effect,
+    fit_effect,
+    load_augmented,
+    save_augmented,
+)
+from ipmc_model.errors import ModelFileError
+from ipmc_model.lssvm import LSSVMRegressor
+from ipmc_model.narx import InverseNarxModel, NarxModel
+
+RATE = 50.0
+
+
+def _narx(rows=400):
+    return NarxModel(LSSVMRegressor(C=5000.0, sigma=2.0), lag_step=4, max_rows=rows)
+
+
+@pytest.fixture(scope="module")
+def record():
+    _, us = random_sine(60, RATE, 2.5, (0.05, 1.0), 8, seed=2)
+    _, st = random_steps(60, RATE, 1.5, (3.0, 10.0), seed=1)
+    u = np.clip(0.6 * us + st, -3, 3)
+    run = IpmcPlant(seed=0, dt_s=1 / RATE).run(u)
+    return u, run.y_mm
+
+
+@pytest.fixture(scope="module")
+def base(record):
+    u, y = record
+    return AugmentedModel.identify(_narx(), u, y, (), 1 / RATE)
+
+
+def test_effect_validates_parameters():
+    with pytest.raises(ValueError, match="unknown effect"):
+        Effect("hysteresis", a=1.0)
+    with pytest.raises(ValueError, match="needs parameters"):
+        Effect("creep", tau_s=1.0)
+    with pytest.raises(ValueError, match="tau_s must be > 0"):
+        Effect("creep", tau_s=0.0, gain_mm_per_v=1.0)
+    assert "mm/V" in Effect("creep", tau_s=3.0, gain_mm_per_v=-0.2).describe()
+
+
+def test_creep_state_is_first_order_step_response():
+    e = Effect("creep", tau_s=2.0, gain_mm_per_v=-0.5)
+    u = np.ones(1001)
+    c = e.creep_state(u, 0.01)
+    assert c[0] == 0.0
+    assert_allclose(c[200], -0.5 * (1 - np.exp(-2.0 / 2.0)), rtol=1e-9)
+
+
+@pytest.mark.parametrize("name,params", [
+    ("creep", {"tau_s": 5.0, "gain_mm_per_v": -0.3}),
+    ("drift", {"gain_loss_per_min": 0.05, "offset_mm_per_min": 0.1}),
+    ("saturation", {"limit_mm": 4.0}),
+])
+def test_output_effect_backward_inverts_forward(name, params):
+    e = Effect(name, **params)
+    rng = np.random.default_rng(0)
+    u = rng.uniform(-3, 3, 500)
+    z = rng.uniform(-3, 3, 500)
+    t = np.arange(500) * 0.02
+    assert_allclose(e.backward(e.forward(z, u, t, 0.02), u, t, 0.02), z, atol=1e-9)
+
+
+def test_stepper_matches_batch_simulation(base):
+    effects = [Effect("dead_zone", width_v=0.2), Effect("creep", tau_s=4.0, gain_mm_per_v=-0.3),
+               Effect("drift", gain_loss_per_min=0.02, offset_mm_per_min=0.05)]
+    m = AugmentedModel(base.baseline, effects, base.dt_s)
+    u = random_sine(10, RATE, 2.0, (0.1, 1.0), 4, seed=5)[1]
+    st = m.stepper()
+    stream = np.array([st.step(v) for v in u])
+    # the same chain by hand: dead zone -> baseline stepper (from rest) -> creep -> drift
+    v = effects[0].apply_input(u, m.dt_s)
+    bs = base.baseline.stepper()
+    z = np.array([bs.step(x) for x in v])
+    t = np.arange(u.size) * m.dt_s
+    expected = effects[2].forward(effects[1].forward(z, u, t, m.dt_s), u, t, m.dt_s)
+    assert_allclose(stream, expected, atol=1e-9)
+
+
+class _IdentityInverse:
+    """Stands in for a fitted InverseNarxModel whose baseline is the identity (z = v)."""
+
+    def stepper(self):
+        return self
+
+    def step(self, z):
+        return z
+
+    def record_applied(self, v):
+        pass
+
+
+def test_inverse_stepper_subtracts_creep_before_the_baseline_inverse(base):
+    creep = Effect("creep", tau_s=5.0, gain_mm_per_v=-0.3)
+    m = AugmentedModel(base.baseline, [creep], base.dt_s)
+    ref = np.full(int(20 * RATE), 1.0)
+    st = m.inverse_stepper(_IdentityInverse())
+    u_ff = np.array([st.step(r) for r in ref])
+    # with an identity baseline, y = u + c(u): the feedforward must make u + c = ref exactly
+    c = creep.creep_state(u_ff, m.dt_s)
+    assert_allclose(u_ff + c, ref, atol=1e-12)
+    assert c[-1] < -0.2  # the creep built up and was compensated (u rose above 1 V)
+    assert u_ff[-1] > 1.2
+    # an applied voltage other than the returned one (limit, PID) advances the creep state
+    st2 = m.inverse_stepper(_IdentityInverse())
+    st2.step(1.0)
+    st2.record_applied(0.0)
+    assert st2.step(1.0) == 1.0  # no creep built from 0 V
+
+
+def test_inverse_fits_in_baseline_space(record, base):
+    u, y = record
+    m = AugmentedModel(base.baseline, [Effect("creep", tau_s=5.0, gain_mm_per_v=-0.3)],
+                       base.dt_s)
+    inv = m.fit_inverse(u, y, InverseNarxModel(LSSVMRegressor(C=5000.0, sigma=2.0),
+                                               lag_step=4, max_rows=300))
+    st = m.inverse_stepper(inv)
+    assert np.isfinite(st.step(0.5))
+
+
+def test_delay_is_not_invertible(base):
+    m = AugmentedModel(base.baseline, [Effect("delay", delay_s=0.1)], base.dt_s)
+    with pytest.raises(ValueError, match="delay"):
+        m.fit_inverse(np.zeros(10), np.zeros(10))
+
+
+def test_save_load_round_trip(tmp_path, base):
+    effects = [Effect("creep", tau_s=12.0, gain_mm_per_v=-0.25), Effect("asymmetry",
+                                                                       negative_gain_ratio=1.3)]
+    m = AugmentedModel(base.baseline, effects, base.dt_s)
+    p = save_augmented(m, tmp_path / "aug.json")
+    m2 = load_augmented(p)
+    assert m2.effect_names == ["creep", "asymmetry"]
+    u = random_sine(8, RATE, 2.0, (0.1, 1.0), 4, seed=7)[1]
+    assert_allclose(m2.simulate(u), m.simulate(u), atol=1e-12)
+    (tmp_path / "bad.json").write_text("{}")
+    with pytest.raises(ModelFileError, match="bad.json"):
+        load_augmented(tmp_path / "bad.json")
+
+
+def test_fit_creep_recovers_parameters_on_baseline_plus_creep(record, base):
+    u, _ = record
+    true = Effect("creep", tau_s=8.0, gain_mm_per_v=-0.4)
+    y = AugmentedModel(base.baseline, [true], base.dt_s).simulate(u)
+    m, eff = fit_effect("creep", AugmentedModel(base.baseline, [], base.dt_s), _narx(), u, y)
+    assert_allclose(eff.params["gain_mm_per_v"], -0.4, rtol=0.15)
+    assert_allclose(eff.params["tau_s"], 8.0, rtol=0.3)
+    assert m.effect_names == ["creep"]
+
+
+def test_every_candidate_fits(record, base):
+    u, y = record
+    for name in EFFECT_NAMES:
+        m, eff = fit_effect(name, base, _narx(), u, y, screen_narx=_narx(200))
+        assert m.effect_names == [name] and eff.name == name
+        assert np.all(np.isfinite(m.simulate(u[:200])))
