@@ -150,6 +150,7 @@ class ModelServer(Node):
         self.declare_parameter("diagnostics_period_s", 1.0, d(
             description="wall-clock period of /diagnostics, s", read_only=True))
         self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
 
         g = self.get_parameter
         self.model_file = g("model_file").value
@@ -223,9 +224,11 @@ class ModelServer(Node):
         problem = self._check(**new)
         if problem:
             return SetParametersResult(successful=False, reason=problem)
-        self.u_max_v = float(new.get("u_max_v", self.u_max_v))
-        self.history_voltage = new.get("history_voltage", self.history_voltage)
         return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, params) -> None:
+        self.u_max_v = float(self.get_parameter("u_max_v").value)
+        self.history_voltage = self.get_parameter("history_voltage").value
 
     # -- models ---------------------------------------------------------------------------------
     def reload(self) -> tuple[bool, str]:
