@@ -14,6 +14,7 @@ the whole record (exact up to 4000 rows, fixed-size above).
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import dataclass, field
 
@@ -79,6 +80,18 @@ def one_step_rmse_objective(model, u_val, y_val) -> float:
     L = model.max_lag_
     y_hat = model.predict(u_val, y_val)
     return float(np.sqrt(np.mean((y_hat[L:] - y_val[L:]) ** 2)))
+
+
+def _single_thread_blas():
+    """Limit BLAS to one thread while tuning: each candidate is a small (<= 1000 row) solve, for
+    which multithreaded OpenBLAS is slower, and up to 10x slower on a shared, loaded machine
+    (threads spin waiting for cores). threadpoolctl comes with scikit-learn; without it, no-op.
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=1, user_api="blas")
 
 
 _OBJECTIVE_FUNCS = {"free_run": free_run_rmse_objective, "one_step": one_step_rmse_objective}
@@ -172,7 +185,7 @@ def tune_lssvm_narx(
             progress(cycle, n_cycles, best, counter["n"])
 
     t0 = time.perf_counter()
-    with np.errstate(over="ignore", invalid="ignore"):
+    with np.errstate(over="ignore", invalid="ignore"), _single_thread_blas():
         res = minimize_abc(counted, [log10_C_bounds, log10_sigma_bounds], n_sources=n_sources,
                            n_cycles=n_cycles, seed=seed, callback=cb)
     return TuningResult(C=float(10.0 ** res.x[0]), sigma=float(10.0 ** res.x[1]),
