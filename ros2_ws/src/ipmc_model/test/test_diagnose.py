@@ -1,0 +1,103 @@
+"""Tests of ipmc_model.diagnose and ``ipmc diagnose``: contract, clean plant, bad input.
+
+Short records (60 s at 50 Hz) and fixed LSSVM hyperparameters keep the file fast; the heavy
+runs (every effect, several seeds, 30 000 samples, third-party data) are in
+benchmarks/bench_diagnose.py and docs/diagnose.md.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+import pytest
+
+from ipmc_driver.dataio import Record, save_csv
+from ipmc_driver.plant import IpmcPlant
+from ipmc_driver.signals import random_sine, random_steps
+from ipmc_model.diagnose import choose_lag_step, diagnose
+from ipmc_model.diagnose_cli import main
+
+RATE = 50.0
+FAST = {"C": 5000.0, "sigma": 2.0, "lag_step": 4, "max_rows": 500, "screen_rows": 250}
+KEYS = {"effects_found", "rmse_before_mm", "rmse_after_mm", "metric", "candidates",
+        "model_before", "model_after"}
+
+
+def _input(seconds=60.0, seed=2):
+    _, us = random_sine(seconds, RATE, 2.5, (0.05, 1.0), 8, seed=seed)
+    _, st = random_steps(seconds, RATE, 1.5, (3.0, 10.0), seed=seed + 1)
+    return np.clip(0.6 * us + st, -3, 3)
+
+
+def _plant(effects, seed=0, seconds=60.0):
+    u = _input(seconds, seed=2 + seed)
+    run = IpmcPlant(effects=effects, seed=seed, dt_s=1 / RATE).run(u)
+    return run.t_s, u, run.y_mm
+
+
+def test_import_leaves_rclpy_out():
+    assert "rclpy" not in sys.modules
+
+
+def test_no_effect_found_on_clean_plant():
+    t, u, y = _plant({}, seed=0)
+    d = diagnose(t, u, y, **FAST)
+    assert d.effects_found == []
+    assert d.rmse_after_mm == d.rmse_before_mm
+    assert all(not c.accepted for c in d.candidates)
+
+
+@pytest.mark.xfail(strict=False, reason="open: the baseline LSSVM-NARX's held-out free-run "
+                   "error and refit spread are as large as the creep itself (docs/diagnose.md)")
+def test_creep_found_with_undeclared_parameters():
+    t, u, y = _plant({"creep": {"tau_s": 12.0, "gain_mm_per_v": -0.6}}, seed=1)
+    d = diagnose(t, u, y, **FAST)
+    assert "creep" in d.effects_found
+    assert d.rmse_after_mm < 0.8 * d.rmse_before_mm
+
+
+def test_cli_writes_the_contract(tmp_path):
+    t, u, y = _plant({}, seed=0, seconds=40.0)
+    csv = save_csv(Record(t, u, y), tmp_path / "clean.csv")
+    out = tmp_path / "report"
+    assert main(["--data", str(csv), "--report", str(out), "--seed", "0"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary) == KEYS
+    assert isinstance(summary["effects_found"], list)
+    assert summary["rmse_before_mm"] > 0 and summary["rmse_after_mm"] > 0
+    for c in summary["candidates"]:
+        assert set(c) == {"effect", "rmse_mm", "accepted", "evidence"}
+    report = (out / "report.md").read_text()
+    assert "Before and after" in report and "acf_ccf.png" in report
+    for f in ("residual_before_after.png", "acf_ccf.png", "residual_spectrum.png"):
+        assert (out / f).stat().st_size > 1000
+    # the saved baseline can be given back as --model
+    out2 = tmp_path / "again"
+    assert main(["--data", str(csv), "--model", summary["model_before"], "--report",
+                 str(out2)]) == 0
+    assert json.loads((out2 / "summary.json").read_text())["rmse_before_mm"] == \
+        pytest.approx(summary["rmse_before_mm"], rel=1e-9)
+
+
+def test_cli_bad_data_fails_with_one_sentence(tmp_path, capsys):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,u,y\n0,1,nan\n0.02,1,2\n")
+    assert main(["--data", str(bad), "--report", str(tmp_path / "r")]) == 1
+    assert "ipmc diagnose: error:" in capsys.readouterr().err
+
+
+def test_bad_arguments_raise():
+    t, u, y = _plant({}, seconds=10.0)
+    with pytest.raises(ValueError, match="unknown candidate"):
+        diagnose(t, u, y, candidates=["magic"], **FAST)
+    with pytest.raises(ValueError, match="threshold"):
+        diagnose(t, u, y, threshold=1.5, **FAST)
+
+
+def test_lag_step_follows_input_bandwidth():
+    u = _input(60.0)
+    assert 1 <= choose_lag_step(u, RATE) <= 5
+    fast = np.sin(2 * np.pi * 100 * np.arange(7500) / 750.0)
+    assert choose_lag_step(fast, 750.0) == 1
