@@ -1,0 +1,110 @@
+"""Benchmark of ``ipmc diagnose``: wall time on 30 000 samples, the plant's effects, and the
+third-party data (Bouc-Wen, piezo). Prints figures; not part of the pass/fail suite.
+
+    .venv/bin/python benchmarks/bench_diagnose.py [timing|effects|thirdparty|all]
+
+Third-party records are converted to t,u,y CSV in a temporary folder (Bouc-Wen: u in N,
+y in mm; piezo: u in V, y in mm from um); the units are not IPMC ones, the procedure is the same.
+"""
+
+from __future__ import annotations
+
+import csv
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ipmc_driver.dataio import Record, save_csv
+from ipmc_driver.plant import IpmcPlant
+from ipmc_driver.signals import random_sine, random_steps
+from ipmc_model.diagnose_cli import main as diagnose_main
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+RATE = 50.0
+
+
+def plant_record(effects, seconds, seed, rate=RATE):
+    _, us = random_sine(seconds, rate, 2.5, (0.05, 1.0), 8, seed=seed + 2)
+    _, st = random_steps(seconds, rate, 1.5, (3.0, 10.0), seed=seed + 3)
+    u = np.clip(0.6 * us + st, -3, 3)
+    run = IpmcPlant(effects=effects, seed=seed, dt_s=1 / rate).run(u)
+    return Record(run.t_s, u, run.y_mm)
+
+
+def run_cli(csv_path, out):
+    t0 = time.perf_counter()
+    code = diagnose_main(["--data", str(csv_path), "--report", str(out), "--seed", "0"])
+    import json
+
+    s = json.loads((Path(out) / "summary.json").read_text()) if code == 0 else {}
+    return code, time.perf_counter() - t0, s
+
+
+def timing(tmp):
+    rec = plant_record({"creep": {}}, 600.0, seed=0)  # 30 000 samples at 50 Hz
+    p = save_csv(rec, Path(tmp) / "long.csv")
+    code, sec, s = run_cli(p, Path(tmp) / "long")
+    print(f"timing: {len(rec)} samples: exit {code}, wall {sec:.1f} s (limit 300 s); "
+          f"found {s.get('effects_found')}, free-run RMSE {s.get('rmse_before_mm')} -> "
+          f"{s.get('rmse_after_mm')} mm", flush=True)
+
+
+CASES = {
+    "none": {},
+    "creep": {"creep": {"tau_s": 12.0, "gain_mm_per_v": -0.6}},
+    "drift": {"drift": {"gain_loss_per_min": 0.1, "offset_mm_per_min": 0.3}},
+    "delay": {"delay": {"delay_s": 0.2}},
+    "dead_zone": {"dead_zone": {"width_v": 0.6}},
+    "saturation": {"saturation": {"limit_mm": 1.5}},
+}
+
+
+def effects(tmp, seeds=(0, 1)):
+    print("| plant effect | seed | found | free-run RMSE before (mm) | after (mm) | wall (s) |")
+    print("|---|---|---|---|---|---|")
+    for name, eff in CASES.items():
+        for seed in seeds:
+            p = save_csv(plant_record(eff, 90.0, seed), Path(tmp) / f"{name}{seed}.csv")
+            code, sec, s = run_cli(p, Path(tmp) / f"{name}{seed}")
+            print(f"| {name} | {seed} | {', '.join(s.get('effects_found', [])) or 'none'} | "
+                  f"{s.get('rmse_before_mm', float('nan')):.4f} | "
+                  f"{s.get('rmse_after_mm', float('nan')):.4f} | {sec:.0f} |", flush=True)
+
+
+def _convert(src, dst, cols, scale_y, rate=None):
+    rows = list(csv.reader(open(src)))[1:]
+    a = np.array([[float(r[c]) for c in cols] for r in rows])
+    if rate is None:
+        t, u, y = a[:, 0], a[:, 1], a[:, 2] * scale_y
+    else:
+        t = np.arange(len(a)) / rate
+        u, y = a[:, 0], a[:, 1] * scale_y
+    return save_csv(Record(t, u, y), dst)
+
+
+def thirdparty(tmp):
+    bw = _convert(DATA / "boucwen" / "train_multisine.csv", Path(tmp) / "boucwen.csv",
+                  (0, 1), 1000.0, rate=750.0)
+    pz = _convert(DATA / "piezo_smarthysteresis" / "hysteresis_v_150_1hz.csv",
+                  Path(tmp) / "piezo.csv", (1, 3, 2), 1e-3)
+    for label, p in (("boucwen train_multisine (N, mm)", bw), ("piezo 150 V 1 Hz (V, mm)", pz)):
+        code, sec, s = run_cli(p, Path(tmp) / Path(p).stem)
+        print(f"{label}: exit {code}, wall {sec:.0f} s, found {s.get('effects_found')}, "
+              f"free-run RMSE {s.get('rmse_before_mm')} -> {s.get('rmse_after_mm')} mm",
+              flush=True)
+        for c in s.get("candidates", []):
+            print(f"   {c['effect']}: {c['evidence'].get('text', '')}")
+
+
+if __name__ == "__main__":
+    what = sys.argv[1] if len(sys.argv) > 1 else "all"
+    with tempfile.TemporaryDirectory() as tmp:
+        if what in ("timing", "all"):
+            timing(tmp)
+        if what in ("effects", "all"):
+            effects(tmp)
+        if what in ("thirdparty", "all"):
+            thirdparty(tmp)
