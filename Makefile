@@ -27,7 +27,7 @@ test: $(STAMP)
 	$(PY) -m pytest -q tests $(wildcard $(addsuffix /test,$(PKGS)))
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check ros2_ws tests benchmarks
+	$(VENV)/bin/ruff check ros2_ws tests benchmarks scripts
 
 bench: $(STAMP)
 	for b in benchmarks/*.py; do $(PY) $$b || exit 1; done

@@ -19,7 +19,7 @@ setup(
     zip_safe=True,
     maintainer="ipmc-ros developers",
     maintainer_email="ipmc-ros@example.org",
-    description="IPMC rig driver (RS-485), rig emulator, simulated plant, recorder and data tools.",
+    description="IPMC rig driver (RS-485), rig emulator, simulated plant, recorder, data tools.",
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={
