@@ -152,8 +152,8 @@ def main(argv: list[str] | None = None) -> int:
         description="Run the paper's nine sine conditions (Table 1) on the simulated IPMC, "
                     "print the ranges beside the paper's, and write figures.")
     parser.add_argument("--params", help="plant parameter YAML (default: the shipped one)")
-    parser.add_argument("--effect", action="append", default=[], choices=EFFECTS,
-                        help="switch on an optional plant effect (repeatable)")
+    parser.add_argument("--effect", action="extend", nargs="+", default=[], choices=EFFECTS,
+                        help="optional plant effect(s) to switch on (repeatable)")
     parser.add_argument("--seed", type=int, default=0, help="sensor-noise seed")
     parser.add_argument("--rate-hz", type=float, default=100.0, help="sample rate (Hz)")
     parser.add_argument("--json", metavar="OUT", help="write the nine conditions as JSON")

@@ -38,8 +38,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=120.0, help="duration, s")
     parser.add_argument("--rate-hz", type=float, default=100.0, help="sample rate, Hz")
     parser.add_argument("--seed", type=int, default=0, help="seed of the input and the noise")
-    parser.add_argument("--effect", action="append", default=[], choices=EFFECTS,
-                        help="switch on an optional plant effect (repeatable)")
+    parser.add_argument("--effect", action="extend", nargs="+", default=[], choices=EFFECTS,
+                        help="optional plant effect(s) to switch on (repeatable)")
     parser.add_argument("--params", help="plant parameter YAML (default: the shipped one)")
     parser.add_argument("--out", required=True, help="output CSV file")
     args = parser.parse_args(argv)
