@@ -252,40 +252,8 @@ class FixedSizeLSSVMRegressor(_KernelExpansion):
         if int(self.n_prototypes) < 1:
             raise ValueError(f"n_prototypes must be >= 1, got {self.n_prototypes}")
         idx = select_prototypes(X, self.n_prototypes, self.prototypes, self.seed)
-        P = X[idx]
-        n = X.shape[0]
-        # Nystroem features phi(x) = K(x, P) T with T = U_r diag(lambda_r)^(-1/2) from the
-        # eigenpairs of K_MM above a relative floor: an eigen-basis instead of a Cholesky of
-        # K_MM, because K_MM is numerically singular for wide kernels (large sigma). The
-        # features are formed chunk by chunk before the Gram matrix, not as T^T (K^T K) T,
-        # which would square the conditioning of the small eigen-directions.
-        lam, U = eigh(rbf_kernel(P, P, sigma))
-        keep = lam > self.eig_floor * lam[-1]
-        T = U[:, keep] / np.sqrt(lam[keep])
-        r = T.shape[1]
-        A = np.zeros((r, r))
-        f1 = np.zeros(r)
-        fy = np.zeros(r)
-        chunk = int(self.chunk_size)
-        for s in range(0, n, chunk):
-            F = rbf_kernel(X[s : s + chunk], P, sigma) @ T
-            A += F.T @ F
-            f1 += F.sum(0)
-            fy += F.T @ y[s : s + chunk]
-        y_mean = y.mean()
-        mu = f1 / n  # mean feature
-        # Primal ridge with an unregularised bias: (Phi_c^T Phi_c + I/C) w = Phi_c^T (y - mean y)
-        A -= np.outer(f1, mu)
-        A[np.diag_indices_from(A)] += 1.0 / C
-        factor = _cholesky_jittered(A)
-        w = cho_solve(factor, fy - f1 * y_mean, check_finite=False)
-        beta = T @ w
-        b = y_mean - mu @ w
-        self.n_features_kept_ = int(r)
-        self.sigma_, self.C_ = sigma, C
-        self.prototype_indices_ = idx
-        self._set_expansion(P, beta, b)
-        return self
+        stats = FixedSizeStatistics(X, y, idx, sigma, self.chunk_size, self.eig_floor)
+        return stats.solve(C, self)
 
     def get_params(self) -> dict:
         return {
@@ -297,3 +265,83 @@ class FixedSizeLSSVMRegressor(_KernelExpansion):
             "chunk_size": self.chunk_size,
             "eig_floor": self.eig_floor,
         }
+
+
+class FixedSizeStatistics:
+    """What a fixed-size LSSVM fit needs from the data for one sigma, reusable across C.
+
+    Building the Nystroem features and their Gram matrix costs O(N M^2) and depends on the
+    rows, the prototypes and sigma only; the regularisation C enters in one M x M Cholesky
+    solve. Hyperparameter tuning keeps these per sigma and scores many C values cheaply with
+    exactly the regressor the final fit uses.
+
+    Parameters
+    ----------
+    X : ndarray (N, d)
+        Training rows.
+    y : ndarray (N,)
+        Targets.
+    prototype_indices : ndarray of int
+        Rows of ``X`` used as prototypes (see :func:`select_prototypes`).
+    sigma : float
+        RBF bandwidth.
+    chunk_size : int
+        Rows per block when accumulating the Gram matrix.
+    eig_floor : float
+        Relative eigenvalue floor of K_MM (numerical rank).
+    """
+
+    def __init__(self, X, y, prototype_indices, sigma: float, chunk_size: int = 8192,
+                 eig_floor: float = 1e-10):
+        idx = np.asarray(prototype_indices, dtype=int)
+        P = X[idx]
+        n = X.shape[0]
+        # Nystroem features phi(x) = K(x, P) T with T = U_r diag(lambda_r)^(-1/2) from the
+        # eigenpairs of K_MM above a relative floor: an eigen-basis instead of a Cholesky of
+        # K_MM, because K_MM is numerically singular for wide kernels (large sigma). The
+        # features are formed chunk by chunk before the Gram matrix, not as T^T (K^T K) T,
+        # which would square the conditioning of the small eigen-directions.
+        lam, U = eigh(rbf_kernel(P, P, sigma))
+        keep = lam > eig_floor * lam[-1]
+        T = U[:, keep] / np.sqrt(lam[keep])
+        r = T.shape[1]
+        A = np.zeros((r, r))
+        f1 = np.zeros(r)
+        fy = np.zeros(r)
+        chunk = int(chunk_size)
+        for s in range(0, n, chunk):
+            F = rbf_kernel(X[s : s + chunk], P, sigma) @ T
+            A += F.T @ F
+            f1 += F.sum(0)
+            fy += F.T @ y[s : s + chunk]
+        y_mean = float(y.mean())
+        mu = f1 / n  # mean feature
+        A -= np.outer(f1, mu)  # centred Gram: the bias is not regularised
+        self.sigma, self.indices, self.prototypes = float(sigma), idx, P
+        self._T, self._A, self._rhs, self._mu, self._y_mean = T, A, fy - f1 * y_mean, mu, y_mean
+
+    def solve(self, C: float, regressor: FixedSizeLSSVMRegressor | None = None
+              ) -> FixedSizeLSSVMRegressor:
+        """Fitted regressor for this sigma and ``C`` (a copy of ``regressor``'s settings).
+
+        Solves the primal ridge with an unregularised bias,
+        (Phi_c^T Phi_c + I/C) w = Phi_c^T (y - mean y), by Cholesky.
+        """
+        if regressor is None:
+            regressor = FixedSizeLSSVMRegressor(C=C, sigma=self.sigma,
+                                                n_prototypes=self.indices.size)
+        C, sigma = _check_hyper(C, self.sigma)
+        A = self._A.copy()
+        A[np.diag_indices_from(A)] += 1.0 / C
+        factor = _cholesky_jittered(A)
+        w = cho_solve(factor, self._rhs, check_finite=False)
+        regressor.n_features_kept_ = int(self._T.shape[1])
+        regressor.sigma_, regressor.C_ = sigma, C
+        regressor.prototype_indices_ = self.indices
+        regressor._set_expansion(self.prototypes, self._T @ w, self._y_mean - self._mu @ w)
+        return regressor
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held (bytes)."""
+        return int(self._T.nbytes + self._A.nbytes + self.prototypes.nbytes)

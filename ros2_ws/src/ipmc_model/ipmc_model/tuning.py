@@ -1,21 +1,31 @@
-"""Hyperparameter tuning of an LSSVM-NARX model (C, sigma) by artificial bee colony (paper 3.4).
+"""Hyperparameter tuning of an LSSVM-NARX model (C, sigma, lag step) by artificial bee colony.
 
-The search runs in log10 space of C and sigma. The record is split chronologically: the first
-``1 - val_fraction`` fits the model, the last ``val_fraction`` scores it. The default objective
-is the *free-run* simulation RMSE on that validation slice (:func:`free_run_rmse_objective`),
-because a 100 Hz one-step predictor is nearly the identity and its error says little about the
-model; the paper-style *one-step* RMSE is available as :func:`one_step_rmse_objective`.
+The search runs in log10 space of C and sigma (paper 3.4). The record is split
+chronologically: the first ``1 - val_fraction`` fits the model, the last ``val_fraction`` scores
+it. The default objective is the *free-run* simulation RMSE on that validation slice
+(:func:`free_run_rmse_objective`), because a 100 Hz one-step predictor is nearly the identity
+and its error says little about the model; the paper-style *one-step* RMSE is available as
+:func:`one_step_rmse_objective`.
 
-To keep one evaluation cheap on long records, the candidate models are fitted on at most
-``max_train_rows`` regressor rows (evenly spaced in time, exact LSSVM) and scored on at most
-``max_val_samples`` validation samples. :func:`identify_lssvm_narx` then refits the winner on
-the whole record (exact up to 4000 rows, fixed-size above).
+The tuning is posed on the model that is finally fitted. Every candidate uses the regressor
+:func:`~ipmc_model.narx.make_lssvm` gives for that many rows (exact LSSVM up to ``max_exact``
+rows, fixed-size with ``n_prototypes`` k-means++ prototypes above, same seed), fitted on the
+same rows (all of them by default, or at most ``max_train_rows`` evenly spaced); the final
+fit on the whole record uses the same class, size and row rule, so C means the same thing in
+both. Fixed-size candidates are made cheap by keeping the sigma-dependent Gram matrix
+(:class:`~ipmc_model.lssvm.FixedSizeStatistics`): a new C costs one M x M Cholesky. For that,
+log10 sigma is rounded to a grid of ``log10_sigma_resolution`` (0.05 decade, 12 %).
+
+The lag spacing can be searched too (``lag_step="auto"`` or a list): one ABC run per
+candidate spacing, the best validation score wins.
 """
 
 from __future__ import annotations
 
 import contextlib
+import copy
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -23,7 +33,12 @@ import numpy as np
 from ipmc_driver.validation import as_signal, same_length
 
 from .bee_colony import minimize_abc
-from .lssvm import LSSVMRegressor
+from .lssvm import (
+    FixedSizeLSSVMRegressor,
+    FixedSizeStatistics,
+    LSSVMRegressor,
+    select_prototypes,
+)
 from .narx import InverseNarxModel, NarxModel, make_lssvm
 
 OBJECTIVES = ("free_run", "one_step")
@@ -31,6 +46,16 @@ OBJECTIVES = ("free_run", "one_step")
 #: Default ABC budget (sources x cycles), about 10 * (2 * 10 + 1) = 210 model fits; the paper's
 #: is 100 x 100 (about 20 000 fits): pass ``n_sources=100, n_cycles=100`` for it.
 DEFAULT_SOURCES, DEFAULT_CYCLES = 10, 10
+
+#: Lag spacings (samples) tried by ``lag_step="auto"``.
+DEFAULT_LAG_STEPS = (1, 5, 10, 20)
+
+#: Largest row count fitted by the exact LSSVM in identification (fixed-size above); the
+#: exact solve is O(N^3) per tuning candidate, 2000 rows take about 1 s.
+DEFAULT_MAX_EXACT = 2000
+
+#: Memory kept for fixed-size Gram matrices while tuning (bytes).
+_CACHE_BYTES = 400 * 2**20
 
 
 @dataclass
@@ -45,11 +70,14 @@ class TuningResult:
     nfev: int
     seconds: float
     history: list = field(default_factory=list)
+    lag_step: int | None = None
+    per_lag_step: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return {"C": self.C, "sigma": self.sigma, "objective": self.objective,
                 "score_rmse": self.score_mm, "nfev": self.nfev, "seconds": self.seconds,
-                "history": [float(h) for h in self.history]}
+                "history": [float(h) for h in self.history], "lag_step": self.lag_step,
+                "per_lag_step": {str(k): v for k, v in self.per_lag_step.items()}}
 
 
 def _split(u, y, val_fraction: float, max_val_samples: int):
@@ -97,13 +125,61 @@ def _single_thread_blas():
 _OBJECTIVE_FUNCS = {"free_run": free_run_rmse_objective, "one_step": one_step_rmse_objective}
 
 
+class _RowCapture:
+    """A stand-in regressor that keeps the rows NarxModel.fit builds (no fitting)."""
+
+    def fit(self, X, y):
+        self.X_, self.y_ = X, y
+        return self
+
+
+def _lag_steps(lag_step) -> tuple[int, ...]:
+    if isinstance(lag_step, str):
+        if lag_step != "auto":
+            raise ValueError(f"lag_step must be an integer >= 1, a list of them or 'auto', "
+                             f"got {lag_step!r}")
+        return DEFAULT_LAG_STEPS
+    steps = (lag_step,) if np.isscalar(lag_step) else tuple(lag_step)
+    if not steps or any(not isinstance(s, (int, np.integer)) or s < 1 for s in steps):
+        raise ValueError(f"lag_step must be an integer >= 1, a list of them or 'auto', "
+                         f"got {lag_step!r}")
+    return tuple(int(s) for s in steps)
+
+
+class _CandidateFactory:
+    """Fits candidate regressors on one structure's rows, as the final fit will (see module
+    docstring), keeping fixed-size Gram matrices per sigma."""
+
+    def __init__(self, X, t, exact: bool, n_prototypes: int, seed):
+        self.X, self.t = X, t
+        self.n_prototypes, self.seed = n_prototypes, seed
+        self.exact = exact
+        self.idx = None if self.exact else select_prototypes(X, n_prototypes, "kmeans++", seed)
+        self.cache: OrderedDict = OrderedDict()
+
+    def __call__(self, C: float, sigma: float):
+        if self.exact:
+            return LSSVMRegressor(C=C, sigma=sigma).fit(self.X, self.t)
+        stats = self.cache.get(sigma)
+        if stats is None:
+            stats = FixedSizeStatistics(self.X, self.t, self.idx, sigma)
+            self.cache[sigma] = stats
+            while sum(v.nbytes for v in self.cache.values()) > _CACHE_BYTES:
+                self.cache.popitem(last=False)
+        else:
+            self.cache.move_to_end(sigma)
+        reg = FixedSizeLSSVMRegressor(C=C, sigma=sigma, n_prototypes=self.n_prototypes,
+                                      seed=self.seed)
+        return stats.solve(C, reg)
+
+
 def tune_lssvm_narx(
     u,
     y,
     *,
     input_lags: int = 3,
     output_lags: int = 3,
-    lag_step: int = 1,
+    lag_step=1,
     inverse: bool = False,
     objective: str = "free_run",
     val_fraction: float = 0.3,
@@ -111,20 +187,27 @@ def tune_lssvm_narx(
     n_cycles: int = DEFAULT_CYCLES,
     log10_C_bounds: tuple[float, float] = (0.0, 7.0),
     log10_sigma_bounds: tuple[float, float] = (-1.0, 1.5),
-    max_train_rows: int = 1000,
-    max_val_samples: int = 3000,
+    max_train_rows: int | None = None,
+    max_val_samples: int = 10000,
     seed: int | None = 0,
     progress=None,
+    max_exact: int = DEFAULT_MAX_EXACT,
+    n_prototypes: int = 1000,
+    log10_sigma_resolution: float = 0.05,
+    n_folds: int = 1,
 ) -> TuningResult:
-    """Tune C and sigma of an LSSVM-NARX model by ABC in log10 space.
+    """Tune C and sigma (and optionally the lag spacing) of an LSSVM-NARX model by ABC.
 
     Parameters
     ----------
     u, y : array_like, shape (N,)
         Input (V) and output (mm), one uniformly sampled record.
-    input_lags, output_lags, lag_step : int
+    input_lags, output_lags : int
         NARX structure, as :class:`~ipmc_model.narx.NarxModel` (for ``inverse=True``, as
         :class:`~ipmc_model.narx.InverseNarxModel`).
+    lag_step : int, sequence of int or "auto"
+        Lag spacing in samples; a sequence (or ``"auto"`` = ``DEFAULT_LAG_STEPS``) runs one
+        ABC per spacing and keeps the best (``TuningResult.lag_step``).
     inverse : bool
         Tune the inverse model (scored on the voltage it predicts, V).
     objective : {"free_run", "one_step"}
@@ -132,65 +215,123 @@ def tune_lssvm_narx(
     val_fraction : float
         Chronological share of the record used for validation.
     n_sources, n_cycles : int
-        ABC size (default 10 x 10; paper 100 x 100).
+        ABC size per lag spacing (default 10 x 10; paper 100 x 100).
     log10_C_bounds, log10_sigma_bounds : (float, float)
         Search box in log10 units; sigma is in standard deviations of the standardised regressor.
-    max_train_rows, max_val_samples : int
-        Caps that keep one evaluation cheap (see module docstring).
+    max_train_rows : int or None
+        Fit candidates on at most this many regressor rows (evenly spaced); default all rows.
+        :func:`identify_lssvm_narx` applies the same cap to the final fit.
+    max_val_samples : int
+        Score on at most this many validation samples (the start of the validation slice).
     seed : int or None
-        ABC seed.
+        ABC seed, also the prototype-selection seed.
     progress : callable, optional
-        ``progress(cycle, n_cycles, best_rmse, nfev)`` after each cycle (for a progress line).
+        ``progress(cycle, n_cycles, best_rmse, nfev)`` after each cycle (cycles counted over
+        all lag spacings).
+    max_exact, n_prototypes : int
+        Regressor choice, as :func:`~ipmc_model.narx.make_lssvm` (must match the final fit).
+    log10_sigma_resolution : float
+        Grid of log10 sigma (decades) so that Gram matrices are reused; 0 for none.
+    n_folds : int
+        1: score on the last ``val_fraction`` (chronological holdout). K >= 2: blocked
+        cross-validation, the record cut into K contiguous blocks, each scored (its first
+        ``max_val_samples``) by a model fitted on the rows outside it; the objective is the
+        mean of the K RMSEs. K times the fits, a less noisy choice.
 
     Returns
     -------
     TuningResult
+        With ``lag_step`` the chosen spacing and ``per_lag_step`` the best of each spacing.
     """
     if objective not in OBJECTIVES:
         raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
-    (u_tr, y_tr), (u_val, y_val) = _split(u, y, val_fraction, max_val_samples)
+    steps = _lag_steps(lag_step)
+    if not isinstance(n_folds, (int, np.integer)) or n_folds < 1:
+        raise ValueError(f"n_folds must be an integer >= 1, got {n_folds!r}")
+    (u_tr, y_tr), (u_val, _) = _split(u, y, val_fraction, max_val_samples)
+    u = np.concatenate([u_tr, u_val]) if n_folds == 1 else as_signal("u", u)
+    y = as_signal("y", y)[: u.size] if n_folds == 1 else as_signal("y", y)
+    N = u.size
+    if n_folds == 1:  # chronological holdout: the last val_fraction
+        blocks = [(u_tr.size, N)]
+    else:  # blocked cross-validation: K contiguous blocks, each scored once
+        edges = np.linspace(0, N, n_folds + 1).round().astype(int)
+        blocks = [(int(lo), int(min(hi, lo + max_val_samples)))
+                  for lo, hi in zip(edges[:-1], edges[1:], strict=True)]
     score = _OBJECTIVE_FUNCS[objective]
-    if inverse:
-        # the inverse model maps y -> u: score it on the voltage it predicts
-        def build(reg):
-            inv = InverseNarxModel(reg, output_lags=output_lags, input_lags=input_lags,
-                                   lag_step=lag_step, max_rows=max_train_rows)
-            return inv.fit(u_tr, y_tr).narx_
+    # the inverse model maps y -> u: it is scored on the voltage it predicts
+    x_all, t_all = (y, u) if inverse else (u, y)
 
-        x_val, t_val = y_val, u_val
-    else:
-        def build(reg):
-            return NarxModel(reg, input_lags=input_lags, output_lags=output_lags,
-                             lag_step=lag_step, max_rows=max_train_rows).fit(u_tr, y_tr)
+    def skeleton(reg, step):
+        if inverse:
+            return InverseNarxModel(reg, output_lags=output_lags, input_lags=input_lags,
+                                    lag_step=step).fit(u, y).narx_
+        return NarxModel(reg, input_lags=input_lags, output_lags=output_lags,
+                         lag_step=step).fit(u, y)
 
-        x_val, t_val = u_val, y_val
-    # Fail early, with the caller's message, on bad data (NaN, constant, too short).
-    build(LSSVMRegressor(C=1.0, sigma=1.0))
+    res_step = float(log10_sigma_resolution)
 
-    def cost(p):
-        try:
-            model = build(LSSVMRegressor(C=10.0 ** p[0], sigma=10.0 ** p[1]))
-            return score(model, x_val, t_val)
-        except (ValueError, FloatingPointError, np.linalg.LinAlgError):
-            return float("inf")
+    def snap(p):
+        ls = round(p[1] / res_step) * res_step if res_step > 0 else p[1]
+        return 10.0 ** p[0], float(10.0 ** np.clip(ls, *log10_sigma_bounds))
 
     counter = {"n": 0}
-
-    def counted(p):
-        counter["n"] += 1
-        return cost(p)
-
-    def cb(cycle, best):
-        if progress is not None:
-            progress(cycle, n_cycles, best, counter["n"])
-
     t0 = time.perf_counter()
+    per_step: dict = {}
+    best = None
     with np.errstate(over="ignore", invalid="ignore"), _single_thread_blas():
-        res = minimize_abc(counted, [log10_C_bounds, log10_sigma_bounds], n_sources=n_sources,
-                           n_cycles=n_cycles, seed=seed, callback=cb)
-    return TuningResult(C=float(10.0 ** res.x[0]), sigma=float(10.0 ** res.x[1]),
-                        objective=objective, score_mm=float(res.fun), nfev=int(res.nfev),
-                        seconds=time.perf_counter() - t0, history=list(res.history))
+        for i, step in enumerate(steps):
+            # Fail early, with the caller's message, on bad data (NaN, constant, too short).
+            try:
+                skel = skeleton(_RowCapture(), step)
+            except ValueError:
+                if len(steps) == 1:
+                    raise
+                continue  # this spacing needs more samples than the record has
+            rows, L = skel.regressor_, skel.max_lag_
+            k = np.arange(L, N)  # row r predicts sample k = L + r
+            # the final fit's row count decides exact vs fixed-size, as make_lssvm does
+            n_final = k.size if max_train_rows is None else min(k.size, int(max_train_rows))
+            folds = []
+            for lo, hi in blocks:
+                # train on the rows whose target and lags all lie outside the scored block
+                keep = np.flatnonzero((k < lo) | (k >= hi + L))
+                cap = None if max_train_rows is None else int(max_train_rows * keep.size / k.size)
+                if cap is not None and keep.size > cap:
+                    keep = keep[np.linspace(0, keep.size - 1, cap).round().astype(int)]
+                make = _CandidateFactory(rows.X_[keep], rows.y_[keep], n_final <= max_exact,
+                                         n_prototypes, seed)
+                folds.append((lo, hi, make))
+
+            def cost(p, _skel=skel, _folds=folds):
+                counter["n"] += 1
+                C, sigma = snap(p)
+                try:
+                    errs = []
+                    for lo, hi, make in _folds:
+                        model = copy.copy(_skel)
+                        model.regressor_ = make(C, sigma)
+                        errs.append(score(model, x_all[lo:hi], t_all[lo:hi]))
+                    return float(np.mean(errs))
+                except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+                    return float("inf")
+
+            def cb(cycle, fbest, _i=i):
+                if progress is not None:
+                    progress(_i * n_cycles + cycle, len(steps) * n_cycles, fbest, counter["n"])
+
+            res = minimize_abc(cost, [log10_C_bounds, log10_sigma_bounds], n_sources=n_sources,
+                               n_cycles=n_cycles, seed=seed, callback=cb)
+            C, sigma = snap(res.x)
+            per_step[step] = {"C": C, "sigma": sigma, "score_rmse": float(res.fun)}
+            if best is None or res.fun < best[1].fun:
+                best = (step, res, C, sigma)
+    if best is None:
+        raise ValueError(f"too few samples for any of the lag steps {steps}")
+    step, res, C, sigma = best
+    return TuningResult(C=C, sigma=sigma, objective=objective, score_mm=float(res.fun),
+                        nfev=int(counter["n"]), seconds=time.perf_counter() - t0,
+                        history=list(res.history), lag_step=int(step), per_lag_step=per_step)
 
 
 def identify_lssvm_narx(
@@ -201,36 +342,47 @@ def identify_lssvm_narx(
     sigma: float | None = None,
     input_lags: int = 3,
     output_lags: int = 3,
-    lag_step: int = 1,
+    lag_step=1,
     inverse: bool = False,
-    max_exact: int = 4000,
+    max_exact: int = DEFAULT_MAX_EXACT,
     n_prototypes: int = 1000,
     seed: int | None = 0,
     **tune_kwargs,
 ):
     """Identify an LSSVM-NARX model (forward or inverse) from one record.
 
-    If ``C`` and ``sigma`` are both given they are used as they are; otherwise they are tuned
-    by :func:`tune_lssvm_narx` (``tune_kwargs`` go there). The final model is fitted on the
-    whole record: exact LSSVM up to ``max_exact`` rows, fixed-size with ``n_prototypes``
-    above.
+    If ``C`` and ``sigma`` are both given they are used as they are (``lag_step`` must then be
+    one integer); otherwise they, and the lag spacing if ``lag_step`` is a list or ``"auto"``,
+    are tuned by :func:`tune_lssvm_narx` (``tune_kwargs`` go there) with the same regressor
+    rule as the final fit. The final model is fitted on the whole record: exact LSSVM up to
+    ``max_exact`` rows, fixed-size with ``n_prototypes`` above; at most ``max_train_rows``
+    rows (evenly spaced) if that cap was given to the tuning.
 
     Returns
     -------
     (NarxModel or InverseNarxModel, TuningResult or None)
     """
     tuning = None
+    max_rows = tune_kwargs.get("max_train_rows")
     if C is None or sigma is None:
         tuning = tune_lssvm_narx(u, y, input_lags=input_lags, output_lags=output_lags,
-                                 lag_step=lag_step, inverse=inverse, seed=seed, **tune_kwargs)
-        C, sigma = tuning.C, tuning.sigma
+                                 lag_step=lag_step, inverse=inverse, seed=seed,
+                                 max_exact=max_exact, n_prototypes=n_prototypes, **tune_kwargs)
+        C, sigma, lag_step = tuning.C, tuning.sigma, tuning.lag_step
+    else:
+        steps = _lag_steps(lag_step)
+        if len(steps) != 1:
+            raise ValueError("lag_step 'auto' or a list needs tuning: leave C or sigma unset")
+        lag_step = steps[0]
     n = as_signal("u", u).size
+    if max_rows is not None:
+        n = min(n, int(max_rows))
     reg = make_lssvm(C, sigma, n_samples=n, max_exact=max_exact, n_prototypes=n_prototypes,
                      seed=seed)
     if inverse:
         model = InverseNarxModel(reg, output_lags=output_lags, input_lags=input_lags,
-                                 lag_step=lag_step).fit(u, y)
+                                 lag_step=lag_step, max_rows=max_rows).fit(u, y)
     else:
         model = NarxModel(reg, input_lags=input_lags, output_lags=output_lags,
-                          lag_step=lag_step).fit(u, y)
+                          lag_step=lag_step, max_rows=max_rows).fit(u, y)
     return model, tuning
