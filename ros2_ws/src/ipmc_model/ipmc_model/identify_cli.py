@@ -18,7 +18,7 @@ from .metrics import score
 from .narx import PAPER_C, PAPER_SIGMA, InverseNarxModel, NarxModel
 from .persistence import load_model, save_model
 from .play import PrandtlIshlinskii
-from .tuning import DEFAULT_CYCLES, DEFAULT_SOURCES, identify_lssvm_narx
+from .tuning import DEFAULT_CYCLES, DEFAULT_MAX_EXACT, DEFAULT_SOURCES, identify_lssvm_narx
 
 
 def _load(path: str):
@@ -37,6 +37,20 @@ def _budget(text: str) -> tuple[int, int]:
     if s < 2 or c < 1:
         raise argparse.ArgumentTypeError(f"budget needs >= 2 sources and >= 1 cycle: {text!r}")
     return s, c
+
+
+def _lag_step(text: str):
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        steps = [int(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"lag step must be an integer, a comma list of integers or 'auto', got {text!r}"
+        ) from None
+    if any(s < 1 for s in steps):
+        raise argparse.ArgumentTypeError(f"lag steps must be >= 1, got {text!r}")
+    return steps[0] if len(steps) == 1 else steps
 
 
 def _progress(cycle: int, n_cycles: int, best: float, nfev: int) -> None:
@@ -120,7 +134,17 @@ def _identify_parser() -> argparse.ArgumentParser:
                    help=f"LSSVM sigma, standardised units (default {PAPER_SIGMA})")
     p.add_argument("--input-lags", type=int, default=3, help="m (default 3)")
     p.add_argument("--output-lags", type=int, default=3, help="n (default 3)")
-    p.add_argument("--lag-step", type=int, default=1, help="spacing of the lags in samples")
+    p.add_argument("--lag-step", type=_lag_step, default=1,
+                   help="spacing of the lags in samples: an integer, a comma list to search "
+                        "(e.g. 5,10,20) or 'auto' (1,5,10,20; needs --tune abc); default 1")
+    p.add_argument("--prototypes", type=int, default=1000,
+                   help="lssvm-narx: fixed-size prototypes above --max-exact rows (default 1000)")
+    p.add_argument("--max-exact", type=int, default=DEFAULT_MAX_EXACT,
+                   help=f"lssvm-narx: exact LSSVM up to this many rows (default "
+                        f"{DEFAULT_MAX_EXACT})")
+    p.add_argument("--folds", type=int, default=1,
+                   help="tuning validation: 1 = last 30 %% of the record (default); K >= 2 = "
+                        "blocked K-fold cross-validation (K times the fits, less noisy)")
     p.add_argument("--pi-method", choices=("nnls", "pso"), default="nnls",
                    help="pi: thresholds on a grid + NNLS (default, invertible) or PSO (paper)")
     p.add_argument("--operators", type=int, default=10, help="pi: number of play operators")
@@ -153,15 +177,17 @@ def identify_main(argv: list[str] | None = None) -> int:
                 C=None if tune else args.C, sigma=None if tune else args.sigma,
                 input_lags=args.input_lags, output_lags=args.output_lags,
                 lag_step=args.lag_step, inverse=args.inverse, seed=args.seed,
+                n_prototypes=args.prototypes, max_exact=args.max_exact,
                 **({"n_sources": args.budget[0], "n_cycles": args.budget[1],
-                    "objective": args.objective.replace("-", "_"), "progress": _progress}
+                    "objective": args.objective.replace("-", "_"), "progress": _progress,
+                    "n_folds": args.folds}
                    if tune else {}),
             )
             if tuning is not None:
                 meta["tuning"] = tuning.as_dict()
-                print(f"tuned: C = {tuning.C:.6g}, sigma = {tuning.sigma:.6g} "
-                      f"(validation {args.objective} RMSE {tuning.score_mm:.4f}, "
-                      f"{tuning.nfev} fits, {tuning.seconds:.1f} s)")
+                print(f"tuned: C = {tuning.C:.6g}, sigma = {tuning.sigma:.6g}, lag step "
+                      f"{tuning.lag_step} (validation {args.objective} RMSE "
+                      f"{tuning.score_mm:.4f}, {tuning.nfev} fits, {tuning.seconds:.1f} s)")
         result = evaluate_model(model, u, y)
         meta["training_metrics"] = {k: result[k] for k in ("free_run", "one_step", "units",
                                                            "samples_skipped")}

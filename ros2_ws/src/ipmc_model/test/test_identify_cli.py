@@ -82,3 +82,20 @@ def test_identify_bad_budget_is_usage_error(tmp_path, csvs):
     with pytest.raises(SystemExit):
         identify_main(["--data", str(train), "--model", "lssvm-narx", "--budget", "lots",
                        "--out", str(tmp_path / "m")])
+
+
+def test_identify_lag_step_list_and_auto_flags(tmp_path, csvs, capsys):
+    train, _ = csvs
+    model = tmp_path / "m.json"
+    rc = identify_main(["--data", str(train), "--model", "lssvm-narx", "--budget", "2x1",
+                        "--lag-step", "1,5", "--folds", "2", "--out", str(model)])
+    assert rc == 0
+    assert "lag step" in capsys.readouterr().out
+    assert load_model(model).lag_step in (1, 5)
+    rc = identify_main(["--data", str(train), "--model", "lssvm-narx", "--tune", "none",
+                        "--lag-step", "auto", "--out", str(model)])
+    assert rc == 1
+    assert "needs tuning" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        identify_main(["--data", str(train), "--model", "lssvm-narx", "--lag-step", "x",
+                       "--out", str(model)])

@@ -5,6 +5,7 @@ from numpy.testing import assert_allclose
 from ipmc_model.errors import NotFittedError
 from ipmc_model.lssvm import (
     FixedSizeLSSVMRegressor,
+    FixedSizeStatistics,
     LSSVMRegressor,
     rbf_kernel,
     select_prototypes,
@@ -94,3 +95,14 @@ def test_lssvm_rejects_nan_and_mismatch(data):
 def test_lssvm_unfitted_raises():
     with pytest.raises(NotFittedError):
         LSSVMRegressor().predict(np.zeros((2, 3)))
+
+
+def test_fixed_size_statistics_solve_equals_fit_for_each_c(data):
+    X, y = data
+    idx = select_prototypes(X, 40, seed=3)
+    stats = FixedSizeStatistics(X, y, idx, sigma=1.5)
+    for C in (1.0, 100.0, 1e5):
+        ref = FixedSizeLSSVMRegressor(C=C, sigma=1.5, n_prototypes=40, seed=3).fit(X, y)
+        got = stats.solve(C)
+        assert_allclose(got.predict(X), ref.predict(X), rtol=0, atol=1e-9)
+        assert got.C_ == C and got.n_centers_ == 40

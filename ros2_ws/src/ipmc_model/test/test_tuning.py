@@ -57,3 +57,43 @@ def test_tuning_rejects_bad_data(hyst_data):
         tune_lssvm_narx(np.zeros(u.size), y, **SMALL)
     with pytest.raises(ValueError, match="same length"):
         tune_lssvm_narx(u, y[:-5], **SMALL)
+
+
+def test_tuning_searches_lag_steps_and_reports_the_best(hyst_data):
+    u, y = hyst_data
+    res = tune_lssvm_narx(u, y, lag_step=[1, 4], seed=0, **SMALL)
+    assert res.lag_step in (1, 4) and set(res.per_lag_step) == {1, 4}
+    best = min(v["score_rmse"] for v in res.per_lag_step.values())
+    assert res.score_mm == best
+    model, tuning = identify_lssvm_narx(u, y, lag_step=[1, 4], seed=0, **SMALL)
+    assert model.lag_step == tuning.lag_step
+
+
+def test_tuning_lag_step_auto_and_bad_values(hyst_data):
+    u, y = hyst_data
+    with pytest.raises(ValueError, match="lag_step must be"):
+        tune_lssvm_narx(u, y, lag_step="often", **SMALL)
+    with pytest.raises(ValueError, match="lag_step must be"):
+        tune_lssvm_narx(u, y, lag_step=[2, 0], **SMALL)
+    with pytest.raises(ValueError, match="needs tuning"):
+        identify_lssvm_narx(u, y, C=10.0, sigma=1.0, lag_step="auto")
+
+
+def test_tuning_blocked_folds(hyst_data):
+    u, y = hyst_data
+    res = tune_lssvm_narx(u, y, n_folds=3, seed=0, **SMALL)
+    assert np.isfinite(res.score_mm) and res.nfev >= 4 * (2 * 2 + 1)
+    with pytest.raises(ValueError, match="n_folds"):
+        tune_lssvm_narx(u, y, n_folds=0, **SMALL)
+
+
+def test_tuned_candidate_is_the_final_regressor_class(hyst_data):
+    # above max_exact rows both the candidates and the final fit are fixed-size
+    from ipmc_model.lssvm import FixedSizeLSSVMRegressor
+
+    u, y = hyst_data
+    model, tuning = identify_lssvm_narx(u, y, max_exact=500, n_prototypes=50, seed=0,
+                                        n_sources=3, n_cycles=1, max_val_samples=300)
+    assert isinstance(model.regressor_, FixedSizeLSSVMRegressor)
+    assert model.regressor_.n_centers_ == 50
+    assert np.log10(tuning.sigma) == pytest.approx(round(np.log10(tuning.sigma) / 0.05) * 0.05)
