@@ -169,16 +169,22 @@ def test_drop_and_silence_leave_counter_gaps(rig):
     emu.inject(Fault("silence", 0.3))
     t_fault = time.monotonic()
     arrivals = []
-    end = t_fault + 0.6
-    while time.monotonic() < end:
+    # Read until the gap and some samples after it are in (a starved emulator thread may apply
+    # the fault late); give up after 3 s.
+    while time.monotonic() < t_fault + 3.0:
         for f in dec.feed(port.read(port.in_waiting or 1)):
             msg = parse_frame(f)
             if isinstance(msg, Sample):
                 arrivals.append((time.monotonic() - t_fault, msg.counter))
-    longest_quiet = max(b[0] - a[0] for a, b in zip(arrivals, arrivals[1:], strict=False))
-    assert 0.25 < longest_quiet < 0.45
+        counters = [c for _, c in arrivals]
+        jumped = [i for i in range(1, len(counters)) if counters[i] - counters[i - 1] > 1]
+        if jumped and len(counters) - jumped[0] >= 10:
+            break
+    # The rig's counter runs on through the silence: the jump is the silence in rig time.
+    # (Arrival times are not asserted: on a loaded machine the reader gets frames in bursts.)
     jumps = [b[1] - a[1] for a, b in zip(arrivals, arrivals[1:], strict=False)]
     assert max(jumps) == pytest.approx(0.3 * RATE_HZ, abs=0.1 * RATE_HZ)
+    assert sorted(jumps)[-2] == 1  # one gap only, every other sample contiguous
     assert dec.stats.discarded_bytes == 0
 
 
@@ -197,7 +203,7 @@ def test_unplug_removes_device_and_brings_it_back(rig):
     while not os.path.exists(emu.link_path):
         assert time.monotonic() - t_fault < 1.5
         time.sleep(0.01)
-    assert time.monotonic() - t_fault == pytest.approx(0.5, abs=0.2)
+    assert time.monotonic() - t_fault >= 0.45  # not back before the unplug time (late is load)
     port2 = serial.Serial(str(emu.link_path), 115200, timeout=0.02)
     try:
         msgs = samples_of(read_for(port2, FrameDecoder(), 0.2))

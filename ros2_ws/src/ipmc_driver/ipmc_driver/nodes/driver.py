@@ -17,24 +17,22 @@ from __future__ import annotations
 import contextlib
 import math
 import queue
-import sys
 import threading
 import time
 from collections import deque
 from fractions import Fraction
 
-import rclpy
 import serial
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PointStamped, Vector3Stamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 from std_msgs.msg import Float64
 
 from ipmc_driver.arc import D_MM, L1_MM, L2_MM, ArcGeometry
+from ipmc_driver.node_runtime import run_node
 from ipmc_driver.protocol import (
     FrameDecoder,
     Ping,
@@ -488,24 +486,10 @@ class Driver(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    argv = sys.argv if args is None else args
-    if "-h" in argv or "--help" in argv:
-        print(__doc__)
-        print("usage: driver --ros-args -p port:=/dev/ttyUSB0 [-p baudrate:=115200 "
-              "-p sample_rate_hz:=100.0 -p u_max:=3.0 -p watchdog_s:=0.5 -p arc_l2_mm:=20.0 "
-              "-p arc_d_mm:=150.0]")
-        return
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = Driver()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(Driver, args, name="driver", doc=__doc__,
+             usage="driver --ros-args -p port:=/dev/ttyUSB0 [-p baudrate:=115200 "
+                   "-p sample_rate_hz:=100.0 -p u_max:=3.0 -p watchdog_s:=0.5 "
+                   "-p arc_l2_mm:=20.0 -p arc_d_mm:=150.0]")
 
 
 if __name__ == "__main__":

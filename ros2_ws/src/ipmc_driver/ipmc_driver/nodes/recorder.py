@@ -18,14 +18,11 @@ split rosbag2 folders that ``ros2 bag info/play`` of a full ROS install reads (s
 from __future__ import annotations
 
 import importlib
-import signal
 import sys
 import time
 from pathlib import Path
 
-import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import (
     QoSDurabilityPolicy,
@@ -33,9 +30,9 @@ from rclpy.qos import (
     QoSProfile,
     QoSReliabilityPolicy,
 )
-from rclpy.signals import SignalHandlerOptions
 
 from ipmc_driver.bagio import BagWriter
+from ipmc_driver.node_runtime import run_node
 
 DEFAULT_TOPICS = ["/ipmc/command", "/ipmc/voltage", "/ipmc/displacement", "/ipmc/reference"]
 # docs/interfaces.md: topic -> (type, publishers known to be RELIABLE)
@@ -146,32 +143,11 @@ class Recorder(Node):
         super().destroy_node()
 
 
-class _Terminated(Exception):
-    """Raised from the SIGTERM handler to leave spin() like SIGINT does."""
-
-
-def _on_sigterm(signum, frame):
-    raise _Terminated
-
-
 def main(args: list[str] | None = None) -> None:
-    # rclpy handles SIGINT; SIGTERM gets a handler of our own that unwinds spin() into the
-    # same finally. The node's timer wakes the executor every TICK_S, so it runs promptly.
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.SIGINT)
-    signal.signal(signal.SIGTERM, _on_sigterm)
-    node = None
-    try:
-        node = Recorder()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException, _Terminated):
-        pass
-    except (ValueError, OSError) as exc:
-        print(f"recorder: error: {exc}", file=sys.stderr)
-        raise SystemExit(1) from None
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    # SIGINT and SIGTERM both unwind spin() into destroy_node(), which closes the bag.
+    run_node(Recorder, args, name="recorder", doc=__doc__,
+             usage="recorder [--ros-args -p output:=BAG -p topics:=[/ipmc/voltage,...] "
+                   "-p storage:=mcap|sqlite3 -p split_s:=60.0 -p flush_s:=1.0]")
 
 
 if __name__ == "__main__":

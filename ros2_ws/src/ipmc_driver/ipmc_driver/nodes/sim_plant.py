@@ -15,20 +15,18 @@ Clocks (``clock_mode``):
 from __future__ import annotations
 
 import math
-import sys
 import time
 
-import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PointStamped, Vector3Stamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import Float64
 
+from ipmc_driver.node_runtime import run_node
 from ipmc_driver.plant import EFFECTS, IpmcPlant, load_plant_params
 
 # Every sample matters to recorders and model fitting: reliable, deep enough for bursts.
@@ -144,23 +142,9 @@ class SimPlant(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    argv = sys.argv if args is None else args
-    if "-h" in argv or "--help" in argv:
-        print(__doc__)
-        print("usage: sim_plant [--ros-args -p rate_hz:=100.0 -p clock_mode:=realtime|lockstep "
-              "-p effects:=[creep] -p seed:=0 -p params_file:=FILE.yaml]")
-        return
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = SimPlant()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(SimPlant, args, name="sim_plant", doc=__doc__,
+             usage="sim_plant [--ros-args -p rate_hz:=100.0 -p clock_mode:=realtime|lockstep "
+                   "-p effects:=[creep] -p seed:=0 -p params_file:=FILE.yaml]")
 
 
 if __name__ == "__main__":
