@@ -23,7 +23,11 @@ x in m) and ``/ipmc/feedforward`` (Vector3Stamped, x in V); publishes ``/ipmc/co
   over the next period, so it aims at the reference stamped ``t + 1/rate_hz`` when that sample
   is known (the ``reference`` node publishes ahead with ``preview_s``), with the feedforward
   answering that same reference: the graph then runs the in-process loop of
-  ``ipmc_control.experiment`` sample for sample.
+  ``ipmc_control.experiment`` sample for sample. When that reference sample or its feedforward
+  has not arrived yet (a busy reference node or model_server) the step waits for them, at most
+  ``pair_wait_s`` of wall time (lock-step ``sim_plant`` waits for the command meanwhile); steps
+  run without them are counted (``unpaired_steps`` on /diagnostics). Steps aiming before the
+  first reference sample idle (0 V), so the loop starts on the reference's first sample.
 - Without a reference, or without a displacement younger than ``measurement_timeout_s`` when
   feedback is needed, the command is 0 V and the controller state is reset.
 """
@@ -101,12 +105,18 @@ class Controller(Node):
             description="displacement older than this (node clock) -> 0 V, s"))
         self.declare_parameter("diagnostics_period_s", 1.0, d(
             description="wall-clock period of /diagnostics, s", read_only=True))
+        self.declare_parameter("pair_wait_s", 0.05, d(
+            description="trigger 'measurement': longest wall-time wait for the feedforward of "
+                        "the reference sample a step aims at, s", read_only=True))
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
         g = self.get_parameter
         self.rate_hz = float(g("rate_hz").value)
         self.trigger = g("trigger").value
+        self.pair_wait_s = float(g("pair_wait_s").value)
+        if not (self.pair_wait_s > 0 and math.isfinite(self.pair_wait_s)):
+            raise ControlParameterError(f"pair_wait_s must be > 0 s, got {self.pair_wait_s}")
         if not self.rate_hz > 0 or self.trigger not in TRIGGERS:
             raise ControlParameterError(f"need rate_hz > 0 and trigger in {TRIGGERS}, got "
                                         f"{self.rate_hz} and {self.trigger!r}")
@@ -121,6 +131,7 @@ class Controller(Node):
 
         # Latest inputs (mm, V) and their receive times on the node clock (s).
         self._ref_mm: float | None = None
+        self._first_ref_ns: int | None = None   # a step aiming before it has no reference
         self._recent_refs: OrderedDict[int, float] = OrderedDict()
         self._ff_ref_mm: float | None = None  # the reference the last feedforward answers
         self._recent_ffs: OrderedDict[int, float] = OrderedDict()
@@ -133,10 +144,13 @@ class Controller(Node):
         self._last_wall: float | None = None
         self._fallback = False
         self._idle_reason = "starting"
+        # trigger 'measurement': (t_s, now, target_ns, wall) of a step waiting for its u_ff.
+        self._pending: tuple[float, float, int, float] | None = None
         # Loop statistics for /diagnostics and the benchmark.
         self.ticks = 0
         self.deadline_misses = 0
         self.skipped_steps = 0
+        self.unpaired_steps = 0   # steps run without the feedforward of their reference
         self.step_us = deque(maxlen=2000)
         self._saturated = deque(maxlen=200)
 
@@ -151,6 +165,9 @@ class Controller(Node):
 
         if self.trigger == "timer":
             self.create_timer(1.0 / self.rate_hz, self._on_tick)
+        else:
+            self.create_timer(min(0.005, self.pair_wait_s / 2), self._on_pair_wait,
+                              clock=Clock(clock_type=ClockType.STEADY_TIME))
         # Diagnostics on the wall clock: they keep coming when the simulated clock stalls.
         self.create_timer(float(g("diagnostics_period_s").value), self.publish_diagnostics,
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
@@ -203,6 +220,9 @@ class Controller(Node):
     def _on_reference(self, msg: PointStamped) -> None:
         if math.isfinite(msg.point.x):
             self._ref_mm = msg.point.x * 1e3
+            if self._first_ref_ns is None:
+                self._first_ref_ns = _stamp_ns(msg)
+            self._maybe_run_pending()
             self._recent_refs[_stamp_ns(msg)] = self._ref_mm
             if len(self._recent_refs) > REFERENCE_MEMORY:
                 self._recent_refs.popitem(last=False)
@@ -215,6 +235,7 @@ class Controller(Node):
             self._recent_ffs[_stamp_ns(msg)] = self._ff_v
             if len(self._recent_ffs) > REFERENCE_MEMORY:
                 self._recent_ffs.popitem(last=False)
+            self._maybe_run_pending()
 
     def _on_displacement(self, msg: PointStamped) -> None:
         if not math.isfinite(msg.point.x):
@@ -222,8 +243,43 @@ class Controller(Node):
         self._y_mm = msg.point.x * 1e3
         self._y_rx_s = self._now_s()
         if self.trigger == "measurement":
+            if self._pending is not None:  # a step still waiting for its u_ff goes first
+                self.unpaired_steps += 1
+                self._run_pending()
             target_ns = _stamp_ns(msg) + int(round(1e9 / self.rate_hz))
+            if self._missing_inputs(target_ns):
+                # The reference sample this step aims at, or the feedforward answering it, is
+                # on its way (from the reference node, from model_server): wait for it, at most
+                # pair_wait_s of wall time, so the step pairs them as the in-process loop does.
+                self._pending = (_stamp_s(msg), self._y_rx_s, target_ns, time.monotonic())
+                return
             self._step(_stamp_s(msg), self._y_rx_s, target_ns)
+
+    def _missing_inputs(self, target_ns: int) -> bool:
+        if self._first_ref_ns is None:   # wait for the first sample if someone publishes
+            return self.count_publishers("/ipmc/reference") > 0
+        if target_ns < self._first_ref_ns:
+            return False   # before the reference starts: the step idles, nothing to wait for
+        if target_ns not in self._recent_refs:
+            return True
+        return (self.hybrid.mode != "pid" and not self._fallback
+                and target_ns not in self._recent_ffs
+                and (self._ff_v is not None or self.count_publishers("/ipmc/feedforward") > 0))
+
+    def _maybe_run_pending(self) -> None:
+        if self._pending is not None and not self._missing_inputs(self._pending[2]):
+            self._run_pending()
+
+    def _run_pending(self) -> None:
+        if self._pending is not None:
+            t_s, now, target_ns, _ = self._pending
+            self._pending = None
+            self._step(t_s, now, target_ns)
+
+    def _on_pair_wait(self) -> None:
+        if self._pending is not None and time.monotonic() - self._pending[3] > self.pair_wait_s:
+            self.unpaired_steps += 1
+            self._run_pending()
 
     # -- the loop -------------------------------------------------------------------------------
     def _on_tick(self) -> None:
@@ -246,8 +302,10 @@ class Controller(Node):
         y_fresh = self._y_mm is not None and now - self._y_rx_s <= self.y_timeout_s
         mode = self.hybrid.mode
         needs_y = mode != "inverse" or not ff_fresh
-        if self._ref_mm is None or (needs_y and not y_fresh):
-            self._go_idle("no reference yet" if self._ref_mm is None
+        before_start = (target_ns is not None and self._first_ref_ns is not None
+                        and target_ns < self._first_ref_ns)
+        if self._ref_mm is None or before_start or (needs_y and not y_fresh):
+            self._go_idle("no reference yet" if self._ref_mm is None or before_start
                           else "no fresh displacement")
             return
         self._idle_reason = ""
@@ -346,6 +404,7 @@ class Controller(Node):
                             rate_hz=self.rate_hz, trigger=self.trigger, ticks=self.ticks,
                             deadline_misses=self.deadline_misses,
                             skipped_steps=self.skipped_steps,
+                            unpaired_steps=self.unpaired_steps,
                             rejected_steps=self.hybrid.pid.rejected_steps,
                             step_p50_us=f"{p50:.1f}", step_p99_us=f"{p99:.1f}")
 

@@ -11,9 +11,12 @@ every ``1/rate_hz`` s of the node's clock (ROS time: with ``use_sim_time:=true``
 - ``steps``: ``levels_mm``, ``hold_s``, ``repeat``;
 - ``file``: ``path`` (CSV with columns t, y in s, mm), ``repeat``.
 
-The reference's time starts at 0 on the first tick. Generator parameters can be changed at run
-time: the new generator is built first and a failure refuses the change with its reason; the
-time base continues.
+The reference's time starts at 0 on the first tick. Samples lie on the grid
+``t0 + k / rate_hz`` (t0: the first tick), stamped with their own time; each tick publishes every
+sample not yet published up to ``now + preview_s``, so a late tick (under a lock-step
+``/clock`` a timer skips the periods it missed) catches up instead of losing samples.
+Generator parameters can be changed at run time: the new generator is built first and a failure
+refuses the change with its reason; the time base continues.
 """
 
 from __future__ import annotations
@@ -35,6 +38,8 @@ from ipmc_control.references import KINDS, Reference, make_reference
 REFERENCE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
                            reliability=QoSReliabilityPolicy.RELIABLE)
 # Parameter name -> (default, description); which ones each kind takes.
+# Longest catch-up burst, samples: below the subscribers' queue depth (100).
+MAX_BURST = 50
 GENERATOR_PARAMS = {
     "value_mm": (4.0, "constant: displacement, mm"),
     "amplitude_mm": (2.5, "sine: amplitude, mm"),
@@ -101,6 +106,8 @@ class ReferenceNode(Node):
         self.generator = build_reference(self.get_parameter("kind").value, self._values())
         self._pending: Reference | None = None
         self._t0_ns: int | None = None
+        self._next_k = 0   # index of the next sample to publish, stamped t0 + k / rate_hz
+        self._period_ns = int(round(1e9 / self.rate_hz))
 
         self.pub = self.create_publisher(PointStamped, "/ipmc/reference", REFERENCE_QOS)
         self.create_timer(1.0 / self.rate_hz, self._on_tick)
@@ -130,16 +137,24 @@ class ReferenceNode(Node):
             self.get_logger().info(f"reference: now {self.get_parameter('kind').value}")
 
     def _on_tick(self) -> None:
-        now = self.get_clock().now()
-        if self._t0_ns is None:
-            self._t0_ns = now.nanoseconds
-        t_s = (now.nanoseconds - self._t0_ns + self.preview_ns) * 1e-9
-        msg = PointStamped()
-        sec, nanosec = divmod(now.nanoseconds + self.preview_ns, 1_000_000_000)
-        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
-        msg.header.frame_id = self.frame_id
-        msg.point.x = self.generator(t_s) * 1e-3
-        self.pub.publish(msg)
+        now_ns = self.get_clock().now().nanoseconds
+        if self._t0_ns is None or now_ns < self._t0_ns:  # first tick, or the clock went back
+            self._t0_ns, self._next_k = now_ns, 0
+        # Every sample of the grid t0 + k / rate_hz up to now + preview, so that a late tick
+        # (a timer on a lock-step /clock skips the periods it missed) loses no sample.
+        last_k = (now_ns - self._t0_ns + self.preview_ns) // self._period_ns
+        if last_k - self._next_k >= MAX_BURST:
+            self.get_logger().warn(f"reference fell {last_k - self._next_k} samples behind: "
+                                   "skipped them", throttle_duration_sec=1.0)
+            self._next_k = last_k
+        for k in range(self._next_k, last_k + 1):
+            msg = PointStamped()
+            stamp_ns = self._t0_ns + k * self._period_ns
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+            msg.header.frame_id = self.frame_id
+            msg.point.x = self.generator(k * self._period_ns * 1e-9) * 1e-3
+            self.pub.publish(msg)
+        self._next_k = max(self._next_k, last_k + 1)
 
 
 def main(args: list[str] | None = None) -> None:

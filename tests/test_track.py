@@ -1,0 +1,89 @@
+"""``ipmc track``: the JSON contract, the in-process run, and a short graph run agreeing with it.
+
+A small inverse LSSVM-NARX is fitted here on 60 s of the simulated plant (fixed-size LSSVM, 300
+centres, about a second), so the test does not depend on a committed model file.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from ipmc_control.track_cli import main as track_main
+from ipmc_driver.plant import IpmcPlant
+from ipmc_driver.signals import random_sine
+
+VENV_BIN = Path(sys.executable).parent
+KEYS = {"rmse_mm", "max_abs_mm", "u_max_v", "duration_s", "samples"}
+GRAPH_S = 6.0     # simulated seconds of the graph run (lock-step: about 15 s wall)
+
+
+@pytest.fixture(scope="module")
+def inverse_file(tmp_path_factory) -> Path:
+    from threadpoolctl import threadpool_limits
+
+    from ipmc_model.lssvm import FixedSizeLSSVMRegressor
+    from ipmc_model.narx import InverseNarxModel
+    from ipmc_model.persistence import save_model
+
+    _, u = random_sine(60.0, 100.0, amplitude=3.0, seed=1)
+    run = IpmcPlant(seed=1).run(u)
+    reg = FixedSizeLSSVMRegressor(C=1e4, sigma=2.0, n_prototypes=300, seed=0)
+    with threadpool_limits(1):
+        model = InverseNarxModel(reg, input_lags=0, output_lags=6, lag_step=5)
+        model.fit(run.u_v, run.y_mm)
+    return save_model(model, tmp_path_factory.mktemp("track") / "inverse.json")
+
+
+def test_track_in_process_writes_the_json_keys(inverse_file, tmp_path, capsys):
+    out = tmp_path / "run.json"
+    code = track_main(["--model", str(inverse_file), "--reference", "sine", "--mode", "hybrid",
+                       "--seconds", "5", "--json", str(out)])
+    assert code == 0
+    summary = json.loads(out.read_text())
+    assert set(summary) == KEYS
+    assert summary["samples"] == 500
+    assert summary["duration_s"] == pytest.approx(5.0)
+    assert 0.0 < summary["u_max_v"] <= 3.0
+    assert 0.0 < summary["rmse_mm"] <= summary["max_abs_mm"]
+    assert "RMSE" in capsys.readouterr().out
+
+
+def test_track_refuses_a_model_mode_without_a_model(capsys):
+    assert track_main(["--reference", "sine", "--mode", "hybrid", "--seconds", "1"]) == 2
+    assert "needs --model" in capsys.readouterr().err
+
+
+def test_track_refuses_a_forward_model(tmp_path, capsys):
+    from ipmc_model.lssvm import LSSVMRegressor
+    from ipmc_model.narx import NarxModel
+    from ipmc_model.persistence import save_model
+
+    _, u = random_sine(5.0, 100.0, seed=2)
+    run = IpmcPlant(seed=2).run(u)
+    path = save_model(NarxModel(LSSVMRegressor(C=10.0, sigma=2.0)).fit(run.u_v, run.y_mm),
+                      tmp_path / "forward.json")
+    assert track_main(["--model", str(path), "--reference", "sine", "--mode", "inverse",
+                       "--seconds", "1"]) == 2
+    assert "not an inverse model" in capsys.readouterr().err
+
+
+def test_track_graph_agrees_with_in_process_within_10_percent(inverse_file, ros_env, tmp_path):
+    common = ["--model", str(inverse_file), "--reference", "sine", "--mode", "hybrid",
+              "--seconds", str(GRAPH_S)]
+    inproc, graph = tmp_path / "inproc.json", tmp_path / "graph.json"
+    assert track_main([*common, "--json", str(inproc)]) == 0
+    out = subprocess.run([str(VENV_BIN / "ipmc"), "track", *common, "--graph",
+                          "--json", str(graph)], env=ros_env, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr[-3000:]
+    a, b = json.loads(inproc.read_text()), json.loads(graph.read_text())
+    assert set(b) == KEYS
+    assert b["samples"] >= 0.9 * a["samples"]
+    assert b["u_max_v"] <= 3.0
+    assert b["rmse_mm"] == pytest.approx(a["rmse_mm"], rel=0.10), (a, b)
+    assert "slow exits" not in out.stderr, out.stderr[-2000:]
