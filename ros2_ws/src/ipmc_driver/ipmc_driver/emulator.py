@@ -159,6 +159,7 @@ class RigEmulator:
         self._command_seq = 0
         self._counter = 0
         self._pending = {"garbage": 0, "badcrc": 0, "drop": 0, "truncate": 0}
+        self._silent_from = 0.0
         self._silent_until = 0.0
         self._unplugged_until = 0.0
         self._log_file = open(log_path, "w", newline="") if log_path else None  # noqa: SIM115
@@ -225,6 +226,10 @@ class RigEmulator:
             if fault.kind in self._pending:
                 self._pending[fault.kind] += int(fault.amount)
             elif fault.kind == "silence":
+                # In rig time: the samples due in [now, now + S) are not sent, even if a late
+                # (starved) loop produces them afterwards.
+                if now >= self._silent_until:
+                    self._silent_from = now
                 self._silent_until = max(self._silent_until, now + fault.amount)
             elif fault.kind == "unplug":
                 self._unplugged_until = now + fault.amount
@@ -347,8 +352,10 @@ class RigEmulator:
             self._receive()
             due = int((now - start) / period) + 1
             out = bytearray()
-            silent = now < self._silent_until or not self.connected
             while produced < due:
+                due_at = start + produced * period
+                silent = (self._silent_from <= due_at < self._silent_until
+                          or not self.connected)
                 if self._pending["garbage"] and not silent:
                     out += self._rng.integers(0, 256, self._pending["garbage"], np.uint8).tobytes()
                     self._pending["garbage"] = 0

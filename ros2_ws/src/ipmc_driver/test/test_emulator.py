@@ -159,12 +159,24 @@ def test_garbage_resyncs(rig):
     assert counters == list(range(counters[0], counters[0] + len(counters)))
 
 
+def counters_until_gap(port, dec, timeout_s=3.0, after=10):
+    """Sample counters read until a gap and ``after`` samples past it are in (a starved
+    emulator thread may apply a fault late), or ``timeout_s``."""
+    counters, t0 = [], time.monotonic()
+    while time.monotonic() < t0 + timeout_s:
+        counters += [m.counter for m in samples_of(read_for(port, dec, 0.05))]
+        gaps = [i for i in range(1, len(counters)) if counters[i] - counters[i - 1] != 1]
+        if gaps and len(counters) - gaps[0] >= after:
+            break
+    return counters
+
+
 def test_drop_and_silence_leave_counter_gaps(rig):
     emu, port, _ = rig
     dec = FrameDecoder()
     read_for(port, dec, 0.1)
     emu.inject(Fault("drop", 4))
-    counters = [s.counter for s in samples_of(read_for(port, dec, 0.2))]
+    counters = counters_until_gap(port, dec)
     assert [b - a for a, b in zip(counters, counters[1:], strict=False) if b - a != 1] == [5]
     emu.inject(Fault("silence", 0.3))
     t_fault = time.monotonic()
