@@ -1,7 +1,8 @@
 """``ipmc track``: the paper's tracking experiments on the simulated IPMC, in process or through
 the ROS graph (separate processes over real DDS, lock-step clock).
 
-    ipmc track --model INVERSE.json --reference sine|random|constant --mode pid|inverse|hybrid
+    ipmc track --model INVERSE.json --reference sine|random|random-reachable|constant
+               --mode pid|inverse|hybrid
                [--graph] [--plant-effect creep] --json OUT
 
 Both ways run the same loop (``ipmc_control.experiment``), so their RMSEs agree closely; the
@@ -23,6 +24,7 @@ import numpy as np
 
 from .experiment import (
     DEFAULT_DURATION_S,
+    REFERENCE_KIND,
     REFERENCE_PARAMS,
     REFERENCES,
     paper_reference,
@@ -78,7 +80,8 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     work = Path(tempfile.mkdtemp(prefix="ipmc_track_"))
     bag = work / "bag"
     specs = graph_specs(rig_port=None, lockstep=True, model=model_path if mode != "pid" else None,
-                        mode=mode, reference=reference, plant_effects=effects, record=str(bag))
+                        mode=mode, reference=REFERENCE_KIND[reference], plant_effects=effects,
+                        record=str(bag))
     for spec in specs:
         if spec.name == "reference":
             spec.params.update(REFERENCE_PARAMS[reference])

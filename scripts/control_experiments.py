@@ -1,0 +1,132 @@
+"""The tracking table of docs/control.md: identification + ``ipmc track`` in process and through
+the node graph, every number from the commands printed as they run.
+
+    .venv/bin/python scripts/control_experiments.py [--out-dir DIR] [--no-graph]
+                                                    [--seconds S] [--model INVERSE.json]
+
+1. Training data as in the paper's section 3.4 (random-sine voltage on the simulated IPMC):
+   ``ipmc simulate --input random-sine --amplitude 3 --frequency 0.5 --seconds 300 --seed 1``.
+2. The inverse model (Eq. 19) with the recipe of docs/control.md (``RECIPE``): ``ipmc identify
+   --inverse --tune none ...``.
+3. ``ipmc track`` for every reference x mode, in process and with ``--graph`` (sim_plant in
+   lock-step, model_server, controller, reference and recorder as processes over DDS).
+4. A markdown table on stdout (and ``DIR/table.md``), with the JSON summaries in ``DIR``.
+
+Every child runs with one BLAS thread (the machine is shared; the solves are small).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+BIN = Path(sys.executable).parent
+TRAIN = ["--input", "random-sine", "--amplitude", "3", "--frequency", "0.5",
+         "--seconds", "300", "--seed", "1"]
+# The identification recipe (docs/control.md): no voltage autoregression (input lags 0: with
+# it the free-running inverse drifts), 6 displacement lags 50 ms apart, a fixed-size LSSVM.
+RECIPE = ["--model", "lssvm-narx", "--inverse", "--tune", "none", "--C", "1e4", "--sigma", "2",
+          "--input-lags", "0", "--output-lags", "6", "--lag-step", "5", "--prototypes", "800"]
+# (reference, plant effects, label, paper's figures)
+EXPERIMENTS = [
+    ("sine", [], "(a) sine 2.5 mm @ 1/2pi Hz",
+     {"inverse": "0.1152 (sim, Fig. 42)", "hybrid": "0.0244 (sim) / 0.0365 (rig)"}),
+    ("random", [], "(b) random sine 0-0.7 Hz, -9..4 mm (paper's range)",
+     {"hybrid": "0.0306 (rig)"}),
+    ("random-reachable", [], "(b') random sine 0-0.7 Hz, -4..2 mm (reachable)", {}),
+    ("constant", ["creep"], "(c) constant -4 mm hold, 60 s, creep on",
+     {"hybrid": "0.8756 (rig, +4 mm)"}),
+]
+MODES = ("pid", "inverse", "hybrid")
+
+
+def run(argv: list[str], env: dict, log) -> None:
+    print("$ " + " ".join(argv), file=log, flush=True)
+    out = subprocess.run(argv, env=env, capture_output=True, text=True)
+    if out.returncode != 0:
+        raise RuntimeError(f"{' '.join(argv)} failed ({out.returncode}):\n{out.stderr[-3000:]}")
+    for line in out.stdout.splitlines():
+        print("  " + line, file=log, flush=True)
+
+
+def track(ref: str, mode: str, effects: list[str], model: Path, out_dir: Path, graph: bool,
+          seconds: float | None, env: dict, log) -> dict:
+    name = f"{ref}_{mode}{'_graph' if graph else ''}.json"
+    argv = [str(BIN / "ipmc"), "track", "--reference", ref, "--mode", mode,
+            "--json", str(out_dir / name)]
+    if mode != "pid":
+        argv += ["--model", str(model)]
+    for e in effects:
+        argv += ["--plant-effect", e]
+    if graph:
+        argv.append("--graph")
+    if seconds:
+        argv += ["--seconds", str(seconds)]
+    run(argv, env, log)
+    return json.loads((out_dir / name).read_text())
+
+
+def table(results: dict, graph: bool) -> str:
+    head = ("| reference | mode | RMSE in process (mm) | "
+            + ("RMSE graph (mm) | graph vs in process | " if graph else "")
+            + "max abs error (mm) | max abs u (V) | paper RMSE (mm) |")
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for ref, _effects, label, paper in EXPERIMENTS:
+        for mode in MODES:
+            a = results.get((ref, mode, False))
+            if a is None:
+                continue
+            row = f"| {label} | {mode} | {a['rmse_mm']:.4f} | "
+            if graph:
+                b = results.get((ref, mode, True))
+                if b is None:
+                    row += "- | - | "
+                else:
+                    rel = (b["rmse_mm"] - a["rmse_mm"]) / a["rmse_mm"]
+                    row += f"{b['rmse_mm']:.4f} | {rel:+.1%} | "
+            row += f"{a['max_abs_mm']:.3f} | {a['u_max_v']:.2f} | {paper.get(mode, '-')} |"
+            lines.append(row)
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out-dir", help="where data, model and JSON go (default: a temp dir)")
+    parser.add_argument("--no-graph", action="store_true", help="in process only")
+    parser.add_argument("--seconds", type=float, help="override every run's duration, s")
+    parser.add_argument("--model", help="use this inverse model file instead of identifying")
+    args = parser.parse_args(argv)
+    out_dir = Path(args.out_dir or tempfile.mkdtemp(prefix="ipmc_control_"))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    log = sys.stderr
+    t0 = time.monotonic()
+    if args.model:
+        model = Path(args.model)
+    else:
+        data, model = out_dir / "train.csv", out_dir / "inverse.json"
+        run([str(BIN / "ipmc"), "simulate", *TRAIN, "--out", str(data)], env, log)
+        run([str(BIN / "ipmc"), "identify", "--data", str(data), *RECIPE, "--out", str(model)],
+            env, log)
+    results = {}
+    for graph in (False,) if args.no_graph else (False, True):
+        for ref, effects, _label, _paper in EXPERIMENTS:
+            for mode in MODES:
+                results[(ref, mode, graph)] = track(ref, mode, effects, model, out_dir, graph,
+                                                    args.seconds, env, log)
+    md = table(results, not args.no_graph)
+    (out_dir / "table.md").write_text(md + "\n")
+    print(md)
+    print(f"\n{len(results)} runs in {time.monotonic() - t0:.0f} s; files in {out_dir}",
+          file=log)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
