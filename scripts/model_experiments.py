@@ -45,6 +45,26 @@ def _scores(model, u, y, y_init=None):
     return {"free_run": fr, "one_step": rmse(y, yp, L), "skipped": L}
 
 
+def _steps_text(lag_step) -> str:
+    if isinstance(lag_step, (list, tuple)):
+        return "{" + ",".join(str(v) for v in lag_step) + "}"
+    return str(lag_step)
+
+
+def _tuning_text(args, tuning) -> str:
+    val = "last 30 %" if args.folds == 1 else f"{args.folds}-fold blocked CV"
+    return (f"ABC {args.budget[0]}x{args.budget[1]} per lag step ({tuning.nfev} fits), "
+            f"free-run objective, {val}")
+
+
+def _structure(text: str):
+    lags, step = text.split(":")
+    if step == "auto":
+        return int(lags), "auto"
+    steps = [int(v) for v in step.split("/")]
+    return int(lags), steps[0] if len(steps) == 1 else steps
+
+
 # -- 1. the paper's experiment on the simulated rig ----------------------------------------------
 def paper(args) -> dict:
     from ipmc_driver.plant import IpmcPlant
@@ -76,30 +96,61 @@ def paper(args) -> dict:
     print("| model | " + " | ".join(f"{k} one-step / free-run RMSE (mm)" for k in vals)
           + " | notes |")
     print("|---|---|---|---|---|")
-    t0 = time.perf_counter()
-    pi = PrandtlIshlinskii(n_operators=10, method="pso", n_particles=100, n_iter=100,
-                           seed=0).fit(u[:6000], y[:6000])
-    report("PI, 10 operators, PSO 100x100", pi, time.perf_counter() - t0,
-           "fitted on the first 60 s (PSO cost); weights in [-10, 10]")
-    t0 = time.perf_counter()
-    pi2 = PrandtlIshlinskii(n_operators=10, method="nnls").fit(u, y)
-    report("PI, 10 operators, grid + NNLS", pi2, time.perf_counter() - t0,
-           "invertible (weights >= 0)")
-    t0 = time.perf_counter()
-    m = NarxModel(FixedSizeLSSVMRegressor(C=PAPER_C, sigma=PAPER_SIGMA, n_prototypes=1000),
-                  input_lags=3, output_lags=3).fit(u, y)
-    report(f"LSSVM-NARX C={PAPER_C}, sigma={PAPER_SIGMA}", m, time.perf_counter() - t0,
-           "lags 3/3 consecutive; fixed-size, 1000 prototypes")
-    for lag_step in args.lag_steps:
+    if "baselines" in args.models:
         t0 = time.perf_counter()
-        m, tuning = identify_lssvm_narx(u, y, lag_step=lag_step, n_sources=args.budget[0],
+        pi = PrandtlIshlinskii(n_operators=10, method="pso", n_particles=100, n_iter=100,
+                               seed=0).fit(u[:6000], y[:6000])
+        report("PI, 10 operators, PSO 100x100", pi, time.perf_counter() - t0,
+               "fitted on the first 60 s (PSO cost); weights in [-10, 10]")
+        t0 = time.perf_counter()
+        pi2 = PrandtlIshlinskii(n_operators=10, method="nnls").fit(u, y)
+        report("PI, 10 operators, grid + NNLS", pi2, time.perf_counter() - t0,
+               "invertible (weights >= 0)")
+        t0 = time.perf_counter()
+        m = NarxModel(FixedSizeLSSVMRegressor(C=PAPER_C, sigma=PAPER_SIGMA, n_prototypes=1000),
+                      input_lags=3, output_lags=3).fit(u, y)
+        report(f"LSSVM-NARX C={PAPER_C}, sigma={PAPER_SIGMA}", m, time.perf_counter() - t0,
+               "lags 3/3 consecutive; fixed-size, 1000 prototypes")
+    for lags, lag_step in args.structures if "forward" in args.models else ():
+        t0 = time.perf_counter()
+        m, tuning = identify_lssvm_narx(u, y, input_lags=lags, output_lags=lags,
+                                        lag_step=lag_step, n_sources=args.budget[0],
                                         n_cycles=args.budget[1], seed=args.seed,
+                                        n_folds=args.folds, n_prototypes=args.prototypes,
                                         progress=_progress)
-        report(f"LSSVM-NARX ABC (lag step {lag_step})", m, time.perf_counter() - t0,
-               f"C={tuning.C:.4g}, sigma={tuning.sigma:.4g}; ABC {args.budget[0]}x"
-               f"{args.budget[1]} ({tuning.nfev} fits), free-run objective; "
-               f"{time.perf_counter() - t0:.0f} s")
-        rows[f"LSSVM-NARX ABC (lag step {lag_step})"]["tuning"] = tuning.as_dict()
+        name = f"LSSVM-NARX ABC, lags {lags}/{lags}, lag step {_steps_text(lag_step)}"
+        report(name, m, time.perf_counter() - t0,
+               f"chose lag step {tuning.lag_step}, C={tuning.C:.4g}, sigma={tuning.sigma:.4g}; "
+               f"{_tuning_text(args, tuning)}; {time.perf_counter() - t0:.0f} s")
+        rows[name]["tuning"] = tuning.as_dict()
+    if "inverse" in args.models:
+        print("\nInverse models (paper Eq. 19): voltage from the measured displacement; "
+              "free run from the first max-lag measured voltages", flush=True)
+        print("| model | " + " | ".join(f"{k} one-step / free-run RMSE (V)" for k in vals)
+              + " | notes |")
+        print("|---|---|---|---|---|")
+        for lags, lag_step in args.structures:
+            t0 = time.perf_counter()
+            m, tuning = identify_lssvm_narx(u, y, input_lags=lags, output_lags=lags,
+                                            lag_step=lag_step, inverse=True,
+                                            n_sources=args.budget[0], n_cycles=args.budget[1],
+                                            seed=args.seed, n_folds=args.folds,
+                                            n_prototypes=args.prototypes, progress=_progress)
+            res = {}
+            for k, v in vals.items():
+                L = m.max_lag_
+                us = m.simulate(v.y_mm, v.u_v[:L])
+                res[k] = {"free_run": rmse(v.u_v, us, L) if np.all(np.isfinite(us))
+                          else float("inf"),
+                          "one_step": rmse(v.u_v, m.predict(v.y_mm, v.u_v), L), "skipped": L}
+            name = (f"inverse LSSVM-NARX ABC, lags {lags}/{lags}, lag step "
+                    f"{_steps_text(lag_step)}")
+            rows[name] = {"validation": res, "tuning": tuning.as_dict()}
+            cells = " | ".join(f"{r['one_step']:.3f} / {r['free_run']:.3f}"
+                               for r in res.values())
+            print(f"| {name} | {cells} | chose lag step {tuning.lag_step}, C={tuning.C:.4g}, "
+                  f"sigma={tuning.sigma:.4g}; {_tuning_text(args, tuning)}; "
+                  f"{time.perf_counter() - t0:.0f} s |", flush=True)
     return rows
 
 
@@ -188,7 +239,14 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("experiment", choices=("paper", "boucwen", "piezo"))
     p.add_argument("--budget", default="10x10", help="ABC SOURCESxCYCLES (paper: 100x100)")
-    p.add_argument("--lag-steps", default="1,20", help="lag steps of the ABC-tuned models")
+    p.add_argument("--lag-steps", default="1,20", help="piezo: lag steps of the tuned models")
+    p.add_argument("--structures", default="6:auto",
+                   help="paper: comma list of LAGS:STEP, STEP an integer, a /-list searched "
+                        "by the tuning, or auto")
+    p.add_argument("--folds", type=int, default=4, help="tuning validation folds (1: holdout)")
+    p.add_argument("--prototypes", type=int, default=500, help="fixed-size prototypes")
+    p.add_argument("--models", default="baselines,forward,inverse",
+                   help="paper: which rows: baselines (PI, paper LSSVM), forward, inverse")
     p.add_argument("--bw-structures", default="1:3:3,1:8:8",
                    help="Bouc-Wen: comma list of lag_step:input_lags:output_lags")
     p.add_argument("--decimate", type=int, default=10, help="piezo: keep every k-th sample")
@@ -197,6 +255,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     args.budget = tuple(int(v) for v in args.budget.split("x"))
     args.lag_steps = [int(v) for v in args.lag_steps.split(",")]
+    args.structures = [_structure(v) for v in args.structures.split(",")]
     args.bw_structures = [tuple(int(x) for x in s.split(":")) for s in
                           args.bw_structures.split(",")]
     rows = {"paper": paper, "boucwen": boucwen, "piezo": piezo}[args.experiment](args)

@@ -18,7 +18,18 @@ from .metrics import score
 from .narx import PAPER_C, PAPER_SIGMA, InverseNarxModel, NarxModel
 from .persistence import load_model, save_model
 from .play import PrandtlIshlinskii
-from .tuning import DEFAULT_CYCLES, DEFAULT_MAX_EXACT, DEFAULT_SOURCES, identify_lssvm_narx
+from .tuning import (
+    DEFAULT_CYCLES,
+    DEFAULT_LAG_STEPS,
+    DEFAULT_MAX_EXACT,
+    DEFAULT_SOURCES,
+    identify_lssvm_narx,
+)
+
+#: ``ipmc identify`` defaults for lssvm-narx, measured on the simulated rig (docs/models.md):
+#: 6/6 lags with the spacing searched, 4-fold blocked free-run validation, 500 prototypes.
+#: The paper's structure is ``--input-lags 3 --output-lags 3 --lag-step 1 --folds 1``.
+DEFAULT_LAGS, DEFAULT_FOLDS, DEFAULT_PROTOTYPES = 6, 4, 500
 
 
 def _load(path: str):
@@ -132,19 +143,29 @@ def _identify_parser() -> argparse.ArgumentParser:
     p.add_argument("--C", type=float, default=PAPER_C, help=f"LSSVM C (default {PAPER_C})")
     p.add_argument("--sigma", type=float, default=PAPER_SIGMA,
                    help=f"LSSVM sigma, standardised units (default {PAPER_SIGMA})")
-    p.add_argument("--input-lags", type=int, default=3, help="m (default 3)")
-    p.add_argument("--output-lags", type=int, default=3, help="n (default 3)")
-    p.add_argument("--lag-step", type=_lag_step, default=1,
+    p.add_argument("--input-lags", type=int, default=DEFAULT_LAGS,
+                   help=f"m (default {DEFAULT_LAGS}; the paper's is 3)")
+    p.add_argument("--output-lags", type=int, default=DEFAULT_LAGS,
+                   help=f"n (default {DEFAULT_LAGS}; the paper's is 3)")
+    p.add_argument("--lag-step", type=_lag_step, default=None,
                    help="spacing of the lags in samples: an integer, a comma list to search "
-                        "(e.g. 5,10,20) or 'auto' (1,5,10,20; needs --tune abc); default 1")
-    p.add_argument("--prototypes", type=int, default=1000,
-                   help="lssvm-narx: fixed-size prototypes above --max-exact rows (default 1000)")
+                        "(e.g. 5,10,20) or 'auto' (searches "
+                        f"{','.join(map(str, DEFAULT_LAG_STEPS))}; needs --tune abc). Default: "
+                        "auto with --tune abc, 1 with --tune none")
+    p.add_argument("--prototypes", type=int, default=DEFAULT_PROTOTYPES,
+                   help=f"lssvm-narx: fixed-size prototypes above --max-exact rows (default "
+                        f"{DEFAULT_PROTOTYPES})")
     p.add_argument("--max-exact", type=int, default=DEFAULT_MAX_EXACT,
                    help=f"lssvm-narx: exact LSSVM up to this many rows (default "
                         f"{DEFAULT_MAX_EXACT})")
-    p.add_argument("--folds", type=int, default=1,
-                   help="tuning validation: 1 = last 30 %% of the record (default); K >= 2 = "
-                        "blocked K-fold cross-validation (K times the fits, less noisy)")
+    p.add_argument("--max-rows", type=int, default=None,
+                   help="lssvm-narx: fit (tuning candidates and final model) on at most this "
+                        "many regressor rows, evenly spaced (default all; caps time on long "
+                        "records)")
+    p.add_argument("--folds", type=int, default=DEFAULT_FOLDS,
+                   help="tuning validation: 1 = the last 30 %% of the record; K >= 2 = blocked "
+                        f"K-fold cross-validation (K times the fits, less noisy; default "
+                        f"{DEFAULT_FOLDS})")
     p.add_argument("--pi-method", choices=("nnls", "pso"), default="nnls",
                    help="pi: thresholds on a grid + NNLS (default, invertible) or PSO (paper)")
     p.add_argument("--operators", type=int, default=10, help="pi: number of play operators")
@@ -169,6 +190,8 @@ def identify_main(argv: list[str] | None = None) -> int:
                                       seed=args.seed).fit(u, y)
         else:
             tune = args.tune == "abc"
+            if args.lag_step is None:
+                args.lag_step = "auto" if tune else 1
             if tune:
                 print(f"tuning C, sigma by ABC ({args.budget[0]} sources x {args.budget[1]} "
                       f"cycles, {args.objective} objective)", file=sys.stderr, flush=True)
@@ -178,6 +201,7 @@ def identify_main(argv: list[str] | None = None) -> int:
                 input_lags=args.input_lags, output_lags=args.output_lags,
                 lag_step=args.lag_step, inverse=args.inverse, seed=args.seed,
                 n_prototypes=args.prototypes, max_exact=args.max_exact,
+                max_train_rows=args.max_rows,
                 **({"n_sources": args.budget[0], "n_cycles": args.budget[1],
                     "objective": args.objective.replace("-", "_"), "progress": _progress,
                     "n_folds": args.folds}

@@ -24,7 +24,8 @@ def test_identify_and_evaluate_lssvm_narx(tmp_path, csvs, capsys):
     train, test = csvs
     model = tmp_path / "m.json"
     rc = identify_main(["--data", str(train), "--model", "lssvm-narx", "--tune", "abc",
-                        "--budget", "3x2", "--out", str(model)])
+                        "--budget", "3x2", "--input-lags", "3", "--output-lags", "3",
+                        "--lag-step", "1", "--folds", "1", "--out", str(model)])
     assert rc == 0
     out, err = capsys.readouterr()
     assert "ABC cycle 2/2" in err
@@ -99,3 +100,22 @@ def test_identify_lag_step_list_and_auto_flags(tmp_path, csvs, capsys):
     with pytest.raises(SystemExit):
         identify_main(["--data", str(train), "--model", "lssvm-narx", "--lag-step", "x",
                        "--out", str(model)])
+
+
+def test_identify_defaults_search_lag_step_with_folds(tmp_path, csvs, capsys):
+    from ipmc_model.identify_cli import DEFAULT_LAGS
+    from ipmc_model.tuning import DEFAULT_LAG_STEPS
+
+    train, _ = csvs
+    model = tmp_path / "m.json"
+    rc = identify_main(["--data", str(train), "--model", "lssvm-narx", "--budget", "2x1",
+                        "--out", str(model)])
+    assert rc == 0
+    assert f"ABC cycle {len(DEFAULT_LAG_STEPS)}/{len(DEFAULT_LAG_STEPS)}" in \
+        capsys.readouterr().err
+    m = load_model(model)
+    assert m.lag_step in DEFAULT_LAG_STEPS and m.output_lags == DEFAULT_LAGS
+    # --tune none keeps the old default spacing 1
+    rc = identify_main(["--data", str(train), "--model", "lssvm-narx", "--tune", "none",
+                        "--out", str(model)])
+    assert rc == 0 and load_model(model).lag_step == 1
