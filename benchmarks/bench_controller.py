@@ -10,10 +10,12 @@ simulated plant (the plant's own time is not counted):
    available. The inverse model is fitted here on a plant excitation, or loaded with
    ``--model FILE`` (``ipmc_model.persistence.load_model``).
 
-With ``--graph SECONDS`` it also runs ``sim_plant`` (real time), ``reference`` and
-``controller`` as processes over DDS (own domain, loopback) and reports the controller's own
-loop figures from /diagnostics: steps, deadline misses (a 100 Hz tick later than 1.5 periods
-after the previous one, wall clock) and the step time including the publish.
+Then (``--graph SECONDS``, default 30; 0 skips it) it runs ``sim_plant`` (real-time clock),
+``reference``, ``controller`` and, with an inverse model, ``model_server`` (hybrid mode) as
+processes over DDS (own domain, loopback) and reports the controller's own loop figures from
+/diagnostics: steps, deadline misses (a 100 Hz tick later than 1.5 periods after the previous
+one, wall clock) and the step time including the publish; and the intervals between
+``/ipmc/command`` messages as a subscriber receives them.
 
 Goals (issue 5): p99 <= 200 us per step; deadline misses < 0.1 %. Prints tables; not part of
 the pass/fail suite.
@@ -30,6 +32,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -95,8 +98,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=20000, help="steps per case")
     parser.add_argument("--model", help="inverse model file (default: fit one here)")
-    parser.add_argument("--graph", type=float, default=0.0, metavar="SECONDS",
-                        help="also run the node graph over DDS this long (0: skip)")
+    parser.add_argument("--graph", type=float, default=30.0, metavar="SECONDS",
+                        help="also run the node graph over DDS (real-time clock) this long "
+                             "(default 30; 0: skip)")
     args = parser.parse_args(argv)
     n = args.steps
     rows = []
@@ -142,12 +146,19 @@ def main(argv: list[str] | None = None) -> int:
         verdict = "meets" if value <= 200.0 else "MISSES"
         print(f"worst {label} p99 {value:.1f} us: {verdict} the 200 us goal")
     if args.graph > 0:
-        _graph(args.graph)
+        model_file = args.model
+        if model_file is None and model is not None:
+            from ipmc_model.persistence import save_model
+
+            model_file = str(save_model(model, Path(tempfile.mkdtemp()) / "inverse.json"))
+        _graph(args.graph, model_file)
     return 0 if math.isfinite(worst_wall) else 1
 
 
-def _graph(seconds: float) -> None:
-    """sim_plant + reference + controller over DDS; print the controller's loop diagnostics."""
+def _graph(seconds: float, model_file: str | None) -> None:
+    """sim_plant (real time) + reference + controller (+ model_server, hybrid, when there is an
+    inverse model) over DDS; print the controller's loop diagnostics and the command intervals
+    seen by a subscriber."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(1 + os.getpid() % 100),
                ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
@@ -155,9 +166,13 @@ def _graph(seconds: float) -> None:
     from diagnostic_msgs.msg import DiagnosticArray
 
     bin_dir = Path(sys.executable).parent
+    mode = "hybrid" if model_file else "pid"
     argvs = [[str(bin_dir / "sim_plant")],
              [str(bin_dir / "reference"), "--ros-args", "-p", "kind:=sine"],
-             [str(bin_dir / "controller"), "--ros-args", "-p", "mode:=pid"]]
+             [str(bin_dir / "controller"), "--ros-args", "-p", f"mode:={mode}"]]
+    if model_file:
+        argvs.append([str(bin_dir / "model_server"), "--ros-args",
+                      "-p", f"inverse_model_file:={model_file}"])
     procs = [subprocess.Popen(a, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
              for a in argvs]
     loop: dict[str, str] = {}
@@ -171,12 +186,18 @@ def _graph(seconds: float) -> None:
     rclpy.init()
     node = rclpy.create_node("bench_controller")
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
+    from std_msgs.msg import Float64
+
+    arrivals: list[int] = []
+    node.create_subscription(Float64, "/ipmc/command",
+                             lambda m: arrivals.append(time.perf_counter_ns()), 100)
     try:
         # Measure from the first report with steps, so start-up (discovery) is not counted.
         deadline = time.monotonic() + 30.0
         while int(loop.get("ticks", 0)) == 0 and time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=0.05)
         start = dict(loop)
+        arrivals.clear()
         end_at = time.monotonic() + seconds
         while time.monotonic() < end_at:
             rclpy.spin_once(node, timeout_sec=0.05)
@@ -197,10 +218,17 @@ def _graph(seconds: float) -> None:
     misses = int(loop["deadline_misses"]) - int(start["deadline_misses"])
     ratio = misses / ticks if ticks else math.nan
     verdict = "meets" if ratio < 1e-3 else "MISSES"
-    print(f"\ngraph over DDS, {seconds:g} s at 100 Hz (sim_plant real time, pid mode): "
+    print(f"\ngraph over DDS, {seconds:g} s at 100 Hz (sim_plant real time, {mode} mode): "
           f"{ticks} steps, {misses} deadline misses ({ratio:.3%}): {verdict} the 0.1 % goal; "
           f"step incl. publish p50 {loop['step_p50_us']} us, p99 {loop['step_p99_us']} us "
           f"(last 2000 steps)")
+    if len(arrivals) > 2:
+        gaps_ms = np.diff(np.asarray(arrivals, dtype=float)) / 1e6
+        late = int(np.sum(gaps_ms > 15.0))
+        print(f"/ipmc/command as received by a subscriber: {len(arrivals)} messages, interval "
+              f"p50 {np.percentile(gaps_ms, 50):.2f} ms, p99 {np.percentile(gaps_ms, 99):.2f} "
+              f"ms, max {gaps_ms.max():.2f} ms; {late} gaps > 1.5 periods "
+              f"({late / gaps_ms.size:.3%}); load average {os.getloadavg()[0]:.1f}")
 
 
 if __name__ == "__main__":

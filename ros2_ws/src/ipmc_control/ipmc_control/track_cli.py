@@ -34,6 +34,11 @@ from .experiment import (
 )
 from .hybrid import MODES
 
+# Longest wall-time wait of a lock-step graph run for a command or a controller input, s.
+LOCKSTEP_WAIT_S = 2.0
+# Wall time between "every node is up" and starting the plant, s.
+DISCOVERY_SETTLE_S = 1.0
+
 
 def load_inverse(path: str | None, mode: str):
     """Load the inverse model file, or None in PID mode; ``ValueError`` with one sentence."""
@@ -85,9 +90,20 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     for spec in specs:
         if spec.name == "reference":
             spec.params.update(REFERENCE_PARAMS[reference])
+        # Lock-step means every sample waits for its command, and every command for its inputs:
+        # on a loaded machine a process can stall for more than the defaults (0.2 s, 0.05 s),
+        # and a plant stepping on without the command is no longer the in-process loop.
+        if spec.name == "sim_plant":
+            spec.params["lockstep_timeout_s"] = LOCKSTEP_WAIT_S
+        if spec.name == "controller":
+            spec.params["pair_wait_s"] = LOCKSTEP_WAIT_S
     timeout_s = timeout_s or 90.0 + 3.0 * duration_s
     context = rclpy.Context()
-    rclpy.init(context=context)
+    # rclpy's own SIGINT handler only shuts the context down, and the wait loop below then never
+    # ends: Ctrl-C must raise KeyboardInterrupt here, so the Graph stops every node on the way out.
+    from rclpy.signals import SignalHandlerOptions
+
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node("ipmc_track_probe", context=context)
     first_ref, last_y = [], [0]
     qos = QoSProfile(depth=100, reliability=QoSReliabilityPolicy.RELIABLE)
@@ -124,6 +140,9 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
                        and node.count_publishers("/ipmc/reference") >= 1
                        and (not need_ff or node.count_publishers("/ipmc/feedforward") >= 1),
                        30.0, "the graph's nodes to come up")
+            # This probe sees every node; let the nodes see each other too (the controller
+            # must know model_server is there to wait for its first feedforward).
+            time.sleep(DISCOVERY_SETTLE_S)
             graph.start(plant_spec)
             print(f"graph up in {time.monotonic() - t_wall:.1f} s; running {duration_s:g} s "
                   "of simulated time (lock-step)", file=log, flush=True)

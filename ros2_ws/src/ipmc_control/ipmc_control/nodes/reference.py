@@ -39,7 +39,7 @@ REFERENCE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
                            reliability=QoSReliabilityPolicy.RELIABLE)
 # Parameter name -> (default, description); which ones each kind takes.
 # Longest catch-up burst, samples: below the subscribers' queue depth (100).
-MAX_BURST = 50
+MAX_BURST = 90
 GENERATOR_PARAMS = {
     "value_mm": (4.0, "constant: displacement, mm"),
     "amplitude_mm": (2.5, "sine: amplitude, mm"),
