@@ -7,6 +7,11 @@ Not part of the pass/fail suite. Usage:
 
     .venv/bin/python benchmarks/bench_model_fit.py [--sizes 1000,10000,60000] [--budget 10x10]
 
+The LSSVM-NARX recipe is the long-record one of docs/models.md: lags 6/6 at a fixed lag step
+10, candidates and final model on at most 6000 regressor rows (evenly spaced; fixed-size with
+500 prototypes above 2000 rows, exact below), holdout validation on 3000 samples. The
+KernelRidge anchor fits the same rows (all of them, 70/30 holdout).
+
 Goal (issue 4): 60 000 samples tuned and fitted in <= 120 s on a 2-core machine, < 2 GB.
 """
 
@@ -26,6 +31,7 @@ from ipmc_driver.plant import IpmcPlant
 from ipmc_driver.signals import random_sine
 kind, n, sources, cycles, lag_step = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), \
     int(sys.argv[4]), int(sys.argv[5])
+recipe = json.loads(sys.argv[7])
 _, u = random_sine(n / 100.0, 100.0, 3.0, seed=1)
 y = IpmcPlant(seed=1).run(u).y_mm
 out = {"kind": kind, "n": n}
@@ -33,7 +39,7 @@ t0 = time.perf_counter()
 if kind == "lssvm-narx":
     from ipmc_model.tuning import identify_lssvm_narx
     model, tuning = identify_lssvm_narx(u, y, lag_step=lag_step, n_sources=sources,
-                                        n_cycles=cycles, seed=0)
+                                        n_cycles=cycles, seed=0, **recipe)
     out["seconds"] = time.perf_counter() - t0
     out["tuning_seconds"] = tuning.seconds
     out["fits"] = tuning.nfev
@@ -52,8 +58,9 @@ else:
     # Same regressor rows as the NARX model (standardised, lags 3/3); holdout 70/30 split;
     # one-step score (KernelRidge has no free run). n_fits candidates on a square grid.
     n_fits = sources * (2 * cycles + 1)
-    m = NarxModel(LSSVMRegressor(), lag_step=lag_step)
-    m.fit(u[:50], y[:50])  # only to get the row builder; rows below use this record's scaling
+    m = NarxModel(LSSVMRegressor(), lag_step=lag_step, input_lags=recipe["input_lags"],
+                  output_lags=recipe["output_lags"])
+    m.fit(u[:500], y[:500])  # only to get the row builder; rows below use this record's scaling
     m.u_mean_, m.u_scale_ = np.array([u.mean()]), np.array([u.std()])
     m.y_mean_, m.y_scale_ = float(y.mean()), float(y.std())
     X = m._rows(u[:, None], y)
@@ -78,9 +85,10 @@ print(json.dumps(out))
 """
 
 
-def run_case(kind, n, sources, cycles, lag_step, limit_s):
+def run_case(kind, n, sources, cycles, lag_step, limit_s, recipe):
     proc = subprocess.run([sys.executable, "-c", CASE, kind, str(n), str(sources), str(cycles),
-                           str(lag_step), str(limit_s)], capture_output=True, text=True)
+                           str(lag_step), str(limit_s), json.dumps(recipe)],
+                          capture_output=True, text=True)
     if proc.returncode != 0:
         return {"kind": kind, "n": n, "error": proc.stderr.strip().splitlines()[-1]}
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -90,12 +98,23 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", default="1000,10000,60000")
     p.add_argument("--budget", default="10x10", help="ABC SOURCESxCYCLES (default 10x10)")
-    p.add_argument("--lag-step", type=int, default=1)
+    p.add_argument("--lag-step", type=int, default=10)
+    p.add_argument("--lags", type=int, default=6, help="input and output lags")
+    p.add_argument("--folds", type=int, default=1, help="tuning validation folds")
+    p.add_argument("--prototypes", type=int, default=500)
+    p.add_argument("--max-rows", type=int, default=6000,
+                   help="regressor rows for tuning candidates and the final fit (evenly spaced)")
+    p.add_argument("--max-val", type=int, default=3000, help="validation samples per fold")
     p.add_argument("--kr-limit-s", type=float, default=60.0,
                    help="stop the KernelRidge grid after this long and extrapolate")
     p.add_argument("--json", help="also write the rows as JSON")
     args = p.parse_args(argv)
     sources, cycles = (int(v) for v in args.budget.split("x"))
+    recipe = {"input_lags": args.lags, "output_lags": args.lags, "n_folds": args.folds,
+              "n_prototypes": args.prototypes, "max_train_rows": args.max_rows,
+              "max_val_samples": args.max_val}
+    print(f"# recipe: lags {args.lags}/{args.lags}, lag step {args.lag_step}, {recipe}",
+          flush=True)
     print(f"# LSSVM-NARX identification (ABC {sources}x{cycles} free-run tuning + final fit) "
           f"vs KernelRidge grid of the same size; {os.cpu_count()} CPUs", flush=True)
     print("| samples | method | fits | wall time (s) | peak RSS (MB) | notes |")
@@ -103,7 +122,7 @@ def main(argv=None) -> int:
     rows = []
     for n in (int(v) for v in args.sizes.split(",")):
         t0 = time.perf_counter()
-        r = run_case("lssvm-narx", n, sources, cycles, args.lag_step, args.kr_limit_s)
+        r = run_case("lssvm-narx", n, sources, cycles, args.lag_step, args.kr_limit_s, recipe)
         rows.append(r)
         if "error" in r:
             print(f"| {n} | LSSVM-NARX + ABC | - | - | - | failed: {r['error']} |", flush=True)
@@ -118,7 +137,7 @@ def main(argv=None) -> int:
             print(f"| {n} | KernelRidge grid | {sources * (2 * cycles + 1)} | - | - | {note} |")
             rows.append({"kind": "kernel-ridge", "n": n, "note": note})
             continue
-        r = run_case("kernel-ridge", n, sources, cycles, args.lag_step, args.kr_limit_s)
+        r = run_case("kernel-ridge", n, sources, cycles, args.lag_step, args.kr_limit_s, recipe)
         rows.append(r)
         if "error" in r:
             print(f"| {n} | KernelRidge grid | - | - | - | failed: {r['error']} |", flush=True)
