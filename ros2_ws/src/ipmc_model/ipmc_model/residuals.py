@@ -27,6 +27,8 @@ from scipy import stats
 
 from ipmc_driver.validation import as_signal, same_length
 
+#: Tests of :class:`ResidualMonitor`.
+MONITOR_TESTS = ("whiteness", "drift", "both")
 #: Two-sided 95 % quantile of the standard normal distribution.
 Z95 = float(stats.norm.ppf(0.975))
 
@@ -262,6 +264,13 @@ class ResidualMonitor:
     to the model's bandwidth if the sample rate is far above it (``decimate``): at 100 Hz a
     one-step residual of a good model is close to white, a stale one (drift) is not.
 
+    ``test="drift"`` is for the *free-run* residual (measured minus the model's simulation from
+    the input alone), which is never white, so a whiteness test flags a good model too: the
+    first ``reference`` samples after a reset (the freshly fitted model) give the residual's
+    normal mean m0 and spread s0 (standard deviation); a check fails when the window's mean
+    moves by more than ``bias_factor`` s0 from m0 (offset drift, dehydration) or its spread
+    exceeds ``growth`` s0 (gain drift). ``"both"`` runs both tests.
+
     Parameters
     ----------
     window : int
@@ -276,6 +285,16 @@ class ResidualMonitor:
         Consecutive failed checks before STALE.
     decimate : int
         Keep every ``decimate``-th sample.
+    test : {"whiteness", "drift", "both"}
+        Ljung-Box and bias on the window (one-step residual; the default, as before), the
+        reference drift test (free-run residual), or both.
+    reference : int, optional
+        Samples (after decimation) after a reset that define the normal residual (drift
+        test); default ``window``.
+    bias_factor : float
+        Mean shift, in reference spreads, that fails the drift test.
+    growth : float
+        Spread ratio to the reference that fails the drift test.
 
     Examples
     --------
@@ -287,7 +306,9 @@ class ResidualMonitor:
     """
 
     def __init__(self, window: int = 500, lags: int = 20, alpha: float = 0.01,
-                 check_every: int = 50, patience: int = 3, decimate: int = 1):
+                 check_every: int = 50, patience: int = 3, decimate: int = 1, *,
+                 test: str = "whiteness", reference: int | None = None,
+                 bias_factor: float = 0.75, growth: float = 1.5):
         if int(window) < 20:
             raise ValueError(f"window must be >= 20 samples, got {window}")
         if not 1 <= int(lags) < int(window) // 2:
@@ -297,6 +318,17 @@ class ResidualMonitor:
         if int(check_every) < 1 or int(patience) < 1 or int(decimate) < 1:
             raise ValueError("check_every, patience and decimate must be integers >= 1, got "
                              f"{check_every}, {patience}, {decimate}")
+        if test not in MONITOR_TESTS:
+            raise ValueError(f"test must be one of {MONITOR_TESTS}, got {test!r}")
+        if not (float(bias_factor) > 0 and float(growth) > 1):
+            raise ValueError(f"bias_factor must be > 0 and growth > 1, got {bias_factor}, "
+                             f"{growth}")
+        self.test = test
+        self.reference = int(window if reference is None else reference)
+        if self.reference < 20:
+            raise ValueError(f"reference must be >= 20 samples, got {reference}")
+        self.bias_factor = float(bias_factor)
+        self.growth = float(growth)
         self.window = int(window)
         self.lags = int(lags)
         self.alpha = float(alpha)
@@ -309,6 +341,8 @@ class ResidualMonitor:
     def reset(self) -> None:
         """Forget the history (after a model update)."""
         self._buf: deque[float] = deque(maxlen=self.window)
+        self._ref: list[float] = []
+        self._ref_mean = self._ref_rms = float("nan")
         self._n_raw = 0
         self._since_check = 0
         self._failed = 0
@@ -335,6 +369,12 @@ class ResidualMonitor:
         if not np.isfinite(e) or (self._n_raw - 1) % self.decimate:
             return self._status
         self._buf.append(e)
+        if len(self._ref) < self.reference:
+            self._ref.append(e)
+            if len(self._ref) == self.reference:
+                x = np.asarray(self._ref)
+                self._ref_mean = float(x.mean())
+                self._ref_rms = float(np.sqrt(np.mean((x - x.mean()) ** 2)))
         self._since_check += 1
         if len(self._buf) == self.window and self._since_check >= self.check_every:
             self._since_check = 0
@@ -359,20 +399,44 @@ class ResidualMonitor:
         r = _xcorr(x, x, self.lags)[self.lags + 1:]
         q = float(n * (n + 2) * np.sum(r * r / (n - np.arange(1, self.lags + 1))))
         p = float(stats.chi2.sf(q, self.lags))
-        # Bias: the mean's bound with the window's own autocorrelation (effective sample size).
-        n_eff = n / max(1.0 + 2.0 * float(np.sum(np.clip(r, 0.0, None))), 1.0)
-        sd = float(x.std())
-        biased = sd > 0 and abs(mean) > Z95 * sd / np.sqrt(n_eff) and abs(mean) > 0.5 * sd
-        white = q <= self._q_crit and not biased
+        reasons = []
+        if self.test in ("whiteness", "both"):
+            # Bias: the mean's bound with the window's own autocorrelation (effective size).
+            n_eff = n / max(1.0 + 2.0 * float(np.sum(np.clip(r, 0.0, None))), 1.0)
+            sd = float(x.std())
+            biased = sd > 0 and abs(mean) > Z95 * sd / np.sqrt(n_eff) and abs(mean) > 0.5 * sd
+            if q > self._q_crit:
+                reasons.append(f"Ljung-Box p = {p:.3g}")
+            if biased:
+                reasons.append(f"bias {mean:.4g}")
+        drift_ready = len(self._ref) >= self.reference
+        if self.test in ("drift", "both") and drift_ready:
+            s0 = max(self._ref_rms, 1e-12)
+            shift = mean - self._ref_mean
+            spread = float(np.sqrt(np.mean((x - mean) ** 2)))
+            if abs(shift) > self.bias_factor * s0:
+                reasons.append(f"mean moved {shift:+.4g} from {self._ref_mean:.4g} "
+                               f"(> {self.bias_factor:g} x reference spread {s0:.4g})")
+            if spread > self.growth * s0:
+                reasons.append(f"spread grew to {spread:.4g} (> {self.growth:g} x "
+                               f"reference {s0:.4g})")
+        if self.test == "drift" and not drift_ready:
+            self._status = MonitorStatus(0, f"measuring the reference residual "
+                                            f"({len(self._ref)}/{self.reference} samples)",
+                                         None, p, rms, mean, self._n_raw)
+            return
+        white = not reasons
         self._failed = 0 if white else self._failed + 1
+        why = ", ".join(reasons)
         if white:
-            level, msg = 0, f"residual white (Ljung-Box p = {p:.3g}), rms {rms:.4g}"
+            level, msg = 0, (f"residual white (Ljung-Box p = {p:.3g}), rms {rms:.4g}"
+                             if self.test == "whiteness" else
+                             f"residual as when fitted (mean {mean:.4g}, rms {rms:.4g}; "
+                             f"Ljung-Box p = {p:.3g})")
+        elif self._failed >= self.patience:
+            level = 2
+            msg = (f"model stale: residual check failed {self._failed} times in a row "
+                   f"({why}), rms {rms:.4g}")
         else:
-            why = f"Ljung-Box p = {p:.3g}" + (f", bias {mean:.4g}" if biased else "")
-            if self._failed >= self.patience:
-                level = 2
-                msg = (f"model stale: residual not white in {self._failed} checks in a row "
-                       f"({why}), rms {rms:.4g}")
-            else:
-                level, msg = 1, f"residual not white ({why}), rms {rms:.4g}"
+            level, msg = 1, f"residual check failed ({why}), rms {rms:.4g}"
         self._status = MonitorStatus(level, msg, white, p, rms, mean, self._n_raw)

@@ -111,3 +111,52 @@ def test_monitor_skips_nan_and_validates():
         ResidualMonitor(window=5)
     with pytest.raises(ValueError, match="lags"):
         ResidualMonitor(window=50, lags=40)
+
+
+def _free_run_residual(effects, seed, seconds=480.0, rate=50.0):
+    """Free-run residual (mm) of a baseline fitted on the first 60 s of a plant record."""
+    from ipmc_driver.plant import IpmcPlant
+    from ipmc_driver.signals import random_sine, random_steps
+    from ipmc_model.lssvm import LSSVMRegressor
+    from ipmc_model.narx import NarxModel
+
+    _, us = random_sine(seconds, rate, 2.5, (0.05, 1.0), 8, seed=seed + 2)
+    _, st = random_steps(seconds, rate, 1.5, (3.0, 10.0), seed=seed + 3)
+    u = np.clip(0.6 * us + st, -3, 3)
+    y = IpmcPlant(effects=effects, seed=seed, dt_s=1 / rate).run(u).y_mm
+    fit = int(60 * rate)
+    m = NarxModel(LSSVMRegressor(C=1000.0, sigma=3.0), input_lags=12, output_lags=0,
+                  lag_step=5, max_rows=600).fit(u[:fit], y[:fit])
+    ys = m.simulate(u[fit:], y[fit:fit + m.max_lag_])
+    return (y[fit:] - ys)[m.max_lag_:]
+
+
+def _first_stale_s(e, rate=50.0):
+    # 10 Hz after decimation: a 60 s window, the first 120 s after the fit as reference
+    mon = ResidualMonitor(window=600, lags=20, decimate=5, test="drift", reference=1200)
+    for k, v in enumerate(e):
+        if mon.update(v).level == 2:
+            return k / rate
+    return None
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_monitor_drift_test_flags_drifting_plant_not_clean_one(seed):
+    # plant drift at its defaults (gain loss 3 %/min, offset 0.05 mm/min), not told to the
+    # monitor; seed 2 was not used to choose bias_factor / growth
+    assert _first_stale_s(_free_run_residual({}, seed)) is None
+    t_stale = _first_stale_s(_free_run_residual({"drift": {}}, seed))
+    assert t_stale is not None and t_stale < 360.0  # within 6 min of the fit
+
+
+def test_monitor_drift_test_needs_reference_first():
+    mon = ResidualMonitor(window=50, lags=5, check_every=10, test="drift", reference=100)
+    rng = np.random.default_rng(7)
+    st = mon.update_many(0.1 * rng.standard_normal(90))
+    assert st.level == 0 and "reference" in st.message
+    st = mon.update_many(0.1 * rng.standard_normal(200))
+    assert st.level == 0 and st.white is True
+    st = mon.update_many(0.5 + 0.1 * rng.standard_normal(200))  # offset of 5 spreads
+    assert st.level == 2 and "mean moved" in st.message
+    with pytest.raises(ValueError, match="test"):
+        ResidualMonitor(test="nope")
