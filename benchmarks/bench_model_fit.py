@@ -25,7 +25,7 @@ import sys
 import time
 
 CASE = r"""
-import json, resource, sys, time
+import json, os, resource, sys, time
 import numpy as np
 from ipmc_driver.plant import IpmcPlant
 from ipmc_driver.signals import random_sine
@@ -80,7 +80,11 @@ else:
     out["fits_done"], out["fits"] = done, n_fits
     out["seconds"] = el if done == n_fits else el / done * n_fits
     out["extrapolated"] = done < n_fits
-out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+ru = resource.getrusage(resource.RUSAGE_SELF)
+out["peak_rss_mb"] = ru.ru_maxrss / 1024.0
+# CPU time of this process: the wall time on a shared machine depends on the other jobs
+out["cpu_s"] = ru.ru_utime + ru.ru_stime
+out["loadavg"] = os.getloadavg()[0]
 print(json.dumps(out))
 """
 
@@ -117,35 +121,39 @@ def main(argv=None) -> int:
           flush=True)
     print(f"# LSSVM-NARX identification (ABC {sources}x{cycles} free-run tuning + final fit) "
           f"vs KernelRidge grid of the same size; {os.cpu_count()} CPUs", flush=True)
-    print("| samples | method | fits | wall time (s) | peak RSS (MB) | notes |")
-    print("|---|---|---|---|---|---|")
+    print("| samples | method | fits | wall time (s) | CPU time (s) | peak RSS (MB) | notes |")
+    print("|---|---|---|---|---|---|---|")
     rows = []
     for n in (int(v) for v in args.sizes.split(",")):
         t0 = time.perf_counter()
         r = run_case("lssvm-narx", n, sources, cycles, args.lag_step, args.kr_limit_s, recipe)
         rows.append(r)
         if "error" in r:
-            print(f"| {n} | LSSVM-NARX + ABC | - | - | - | failed: {r['error']} |", flush=True)
+            print(f"| {n} | LSSVM-NARX + ABC | - | - | - | - | failed: {r['error']} |",
+                  flush=True)
         else:
             print(f"| {n} | LSSVM-NARX + ABC | {r['fits']} | {r['seconds']:.1f} | "
-                  f"{r['peak_rss_mb']:.0f} | {r['regressor']} ({r['centers']} centres), "
+                  f"{r['cpu_s']:.1f} | {r['peak_rss_mb']:.0f} | {r['regressor']} "
+                  f"({r['centers']} centres, load average {r['loadavg']:.1f}), "
                   f"C={r['C']:.3g}, sigma={r['sigma']:.3g}, tuning {r['tuning_seconds']:.1f} s, "
                   f"step {r['step_us_median']:.0f} us |", flush=True)
         if n > 20000:
             note = (f"infeasible: the {n - 3}^2 kernel matrix alone needs "
                     f"{(n * 0.7) ** 2 * 8 / 1e9:.1f} GB")
-            print(f"| {n} | KernelRidge grid | {sources * (2 * cycles + 1)} | - | - | {note} |")
+            print(f"| {n} | KernelRidge grid | {sources * (2 * cycles + 1)} | - | - | - | "
+                  f"{note} |")
             rows.append({"kind": "kernel-ridge", "n": n, "note": note})
             continue
         r = run_case("kernel-ridge", n, sources, cycles, args.lag_step, args.kr_limit_s, recipe)
         rows.append(r)
         if "error" in r:
-            print(f"| {n} | KernelRidge grid | - | - | - | failed: {r['error']} |", flush=True)
+            print(f"| {n} | KernelRidge grid | - | - | - | - | failed: {r['error']} |",
+                  flush=True)
         else:
             note = (f"extrapolated from {r['fits_done']} fits" if r["extrapolated"]
                     else "one-step holdout score")
             print(f"| {n} | KernelRidge grid | {r['fits']} | {r['seconds']:.1f} | "
-                  f"{r['peak_rss_mb']:.0f} | {note} |", flush=True)
+                  f"{r['cpu_s']:.1f} | {r['peak_rss_mb']:.0f} | {note} |", flush=True)
         _ = t0
     if args.json:
         with open(args.json, "w") as fh:
