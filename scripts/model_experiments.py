@@ -117,7 +117,7 @@ def paper(args) -> dict:
                                         lag_step=lag_step, n_sources=args.budget[0],
                                         n_cycles=args.budget[1], seed=args.seed,
                                         n_folds=args.folds, n_prototypes=args.prototypes,
-                                        progress=_progress)
+                                        progress=_progress, max_val_samples=10000)
         name = f"LSSVM-NARX ABC, lags {lags}/{lags}, lag step {_steps_text(lag_step)}"
         report(name, m, time.perf_counter() - t0,
                f"chose lag step {tuning.lag_step}, C={tuning.C:.4g}, sigma={tuning.sigma:.4g}; "
@@ -135,7 +135,8 @@ def paper(args) -> dict:
                                             lag_step=lag_step, inverse=True,
                                             n_sources=args.budget[0], n_cycles=args.budget[1],
                                             seed=args.seed, n_folds=args.folds,
-                                            n_prototypes=args.prototypes, progress=_progress)
+                                            n_prototypes=args.prototypes, progress=_progress,
+                                            max_val_samples=10000)
             res = {}
             for k, v in vals.items():
                 L = m.max_lag_

@@ -30,6 +30,8 @@ from .tuning import (
 #: 6/6 lags with the spacing searched, 4-fold blocked free-run validation, 500 prototypes.
 #: The paper's structure is ``--input-lags 3 --output-lags 3 --lag-step 1 --folds 1``.
 DEFAULT_LAGS, DEFAULT_FOLDS, DEFAULT_PROTOTYPES = 6, 4, 500
+#: Validation samples scored per block (100 s at 100 Hz).
+MAX_VAL_SAMPLES = 10000
 
 
 def _load(path: str):
@@ -204,7 +206,7 @@ def identify_main(argv: list[str] | None = None) -> int:
                 max_train_rows=args.max_rows,
                 **({"n_sources": args.budget[0], "n_cycles": args.budget[1],
                     "objective": args.objective.replace("-", "_"), "progress": _progress,
-                    "n_folds": args.folds}
+                    "n_folds": args.folds, "max_val_samples": MAX_VAL_SAMPLES}
                    if tune else {}),
             )
             if tuning is not None:

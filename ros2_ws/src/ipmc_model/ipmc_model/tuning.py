@@ -188,7 +188,7 @@ def tune_lssvm_narx(
     log10_C_bounds: tuple[float, float] = (0.0, 7.0),
     log10_sigma_bounds: tuple[float, float] = (-1.0, 1.5),
     max_train_rows: int | None = None,
-    max_val_samples: int = 10000,
+    max_val_samples: int = 3000,
     seed: int | None = 0,
     progress=None,
     max_exact: int = DEFAULT_MAX_EXACT,
@@ -222,7 +222,8 @@ def tune_lssvm_narx(
         Fit candidates on at most this many regressor rows (evenly spaced); default all rows.
         :func:`identify_lssvm_narx` applies the same cap to the final fit.
     max_val_samples : int
-        Score on at most this many validation samples (the start of the validation slice).
+        Score on at most this many validation samples per block (its start); ``ipmc
+        identify`` and the experiments use 10000.
     seed : int or None
         ABC seed, also the prototype-selection seed.
     progress : callable, optional
