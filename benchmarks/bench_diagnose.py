@@ -3,7 +3,8 @@ third-party data (Bouc-Wen, piezo). Prints figures; not part of the pass/fail su
 
     .venv/bin/python benchmarks/bench_diagnose.py [timing|effects|thirdparty|all]
 
-Third-party records are converted to t,u,y CSV in a temporary folder (Bouc-Wen: u in N,
+Third-party records are converted to t,u,y CSV in a temporary folder (the CLI reads t,u,y CSV
+or a bag; the conversion is done here, not taught to the loader) (Bouc-Wen: u in N,
 y in mm; piezo: u in V, y in mm from um); the units are not IPMC ones, the procedure is the same.
 """
 
@@ -16,6 +17,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from ipmc_driver.dataio import Record, save_csv
 from ipmc_driver.plant import IpmcPlant
@@ -101,6 +103,7 @@ def thirdparty(tmp):
 
 if __name__ == "__main__":
     what = sys.argv[1] if len(sys.argv) > 1 else "all"
+    threadpool_limits(1)  # small solves; the machine is shared
     with tempfile.TemporaryDirectory() as tmp:
         if what in ("timing", "all"):
             timing(tmp)

@@ -587,36 +587,82 @@ def _creep_basis(u, dt_s, tau_s):
     return lfilter([0.0, 1.0 - a], [1.0, -a], u)
 
 
-def _fit_creep(model, narx, u, y, t, iterations):
-    """Creep on the free-run residual of the current model (kept fixed): tau by a log grid
-    from seconds to minutes, gain by least squares (with an intercept that is not kept)."""
+def cross_fitted_residual(model: AugmentedModel, narx: NarxModel, u, y) -> np.ndarray:
+    """Free-run residual (mm) of ``model``'s structure on (u, y), each half predicted by a model
+    refitted on the other half (NaN on each half's first ``max_lag_`` samples).
+
+    An in-sample residual hides what a flexible regressor has absorbed (the LSSVM follows part
+    of a slow creep on the rows it was fitted on); out of fold it shows what the structure
+    cannot explain.
+    """
+    h = u.size // 2
     dt = model.dt_s
-    T = u.size * dt
-    taus = np.geomspace(max(0.5, 20 * dt), min(600.0, max(2.0 * T, 2.0)), 32)
-    L = model.max_lag_
-    r = (y - model.simulate(u, y[:L]))[L:]
-    best = None
-    for tau in taus:
-        x = _creep_basis(u, dt, tau)[L:]
-        A = np.column_stack([x, np.ones_like(x)])
-        coef, *_ = np.linalg.lstsq(A, r, rcond=None)
-        sse = float(np.sum((r - A @ coef) ** 2))
-        if best is None or sse < best[0]:
-            best = (sse, tau, coef[0])
-    eff = Effect("creep", tau_s=float(best[1]), gain_mm_per_v=float(best[2]))
-    return AugmentedModel(model.baseline, model.effects + [eff], dt), eff
+    r = np.full(u.size, np.nan)
+    for fit_sl, pred_sl in ((slice(0, h), slice(h, None)), (slice(h, None), slice(0, h))):
+        m = model.refit(narx, u[fit_sl], y[fit_sl])
+        L = m.max_lag_
+        up, yp = u[pred_sl], y[pred_sl]
+        t0 = (pred_sl.start or 0) * dt
+        past = u[: pred_sl.start] if pred_sl.start else None
+        ys = m.simulate(up, yp[:L], u_past=past, t0_s=t0)
+        rr = yp - ys
+        rr[:L] = np.nan
+        r[pred_sl] = rr
+    return r
+
+
+def creep_taus(dt_s: float, duration_s: float, memory_s: float = 0.0) -> np.ndarray:
+    """Creep time constants searched (s): log grid from 1 s (or 20 samples, or three times the
+    baseline's memory ``memory_s``, whichever is longest) to 10 min, at most twice the record.
+
+    Faster relaxation is inside the baseline's lag window, so the baseline models it (the
+    plant's own back-relaxation, tau 0.46 s, would otherwise pass as creep)."""
+    lo = max(1.0, 20 * dt_s, 3.0 * memory_s)
+    return np.geomspace(lo, max(min(600.0, 2.0 * duration_s), 2.0 * lo), 20)
+
+
+def _fit_creep(model, narx, u, y, t, iterations):
+    """Creep from the cross-fitted free-run residual of the current structure, alternated with
+    the baseline: ``iterations`` + 1 times, the creep (tau by a log grid from seconds to
+    minutes, gain by least squares; an intercept and the input low-passed at the baseline's
+    memory, its own misfit at that time scale, are nuisance terms, not kept) is fitted on
+    y minus the out-of-fold prediction of a baseline fitted on y minus the current creep.
+    The baseline is then refitted on the data with the creep removed."""
+    dt = model.dt_s
+    mem = max(model.max_lag_ * dt, 2 * dt)
+    nuis = _creep_basis(u, dt, mem)
+    taus = creep_taus(dt, u.size * dt, mem)
+    bases = [_creep_basis(u, dt, tau) for tau in taus]
+    cur = model
+    eff = None
+    for _ in range(int(iterations) + 1):
+        c_now = eff.creep_state(u, dt) if eff is not None else 0.0
+        r = cross_fitted_residual(cur, narx, u, y) + c_now  # y - out-of-fold baseline part
+        ok = np.isfinite(r)
+        best = None
+        for tau, xb in zip(taus, bases, strict=True):
+            A = np.column_stack([xb[ok], nuis[ok], np.ones(int(ok.sum()))])
+            coef, *_ = np.linalg.lstsq(A, r[ok], rcond=None)
+            sse = float(np.sum((r[ok] - A @ coef) ** 2))
+            if best is None or sse < best[0]:
+                best = (sse, tau, coef[0])
+        eff = Effect("creep", tau_s=float(best[1]), gain_mm_per_v=float(best[2]))
+        cur = AugmentedModel(model.baseline, model.effects + [eff], dt)
+    return model.refit(narx, u, y, model.effects + [eff]), eff
 
 
 def _fit_drift(model, narx, u, y, t, iterations):
-    """Drift on the free-run output z of the current model (kept fixed): y - z regressed on
-    z t and t (least squares)."""
-    L = model.max_lag_
-    z = model.simulate(u, y[:L])
-    mins = t / 60.0
-    A = np.column_stack([z * mins, mins])[L:]
-    coef, *_ = np.linalg.lstsq(A, (y - z)[L:], rcond=None)
+    """Drift from the cross-fitted free-run residual of the current structure: r regressed on
+    z t and t (z: the out-of-fold prediction; least squares, intercept not kept); then the
+    baseline is refitted on the data with the drift removed."""
+    r = cross_fitted_residual(model, narx, u, y)
+    ok = np.isfinite(r)
+    z = (y - r)[ok]
+    mins = t[ok] / 60.0
+    A = np.column_stack([z * mins, mins, np.ones_like(mins)])
+    coef, *_ = np.linalg.lstsq(A, r[ok], rcond=None)
     eff = Effect("drift", gain_loss_per_min=float(-coef[0]), offset_mm_per_min=float(coef[1]))
-    return AugmentedModel(model.baseline, model.effects + [eff], model.dt_s), eff
+    return model.refit(narx, u, y, model.effects + [eff]), eff
 
 
 def _grid(name, u, y, dt):
@@ -637,7 +683,7 @@ def _grid(name, u, y, dt):
 
 
 def fit_effect(name: str, model: AugmentedModel, narx: NarxModel, u, y, *,
-               screen_narx: NarxModel | None = None, iterations: int = 2,
+               screen_narx: NarxModel | None = None, iterations: int = 0,
                val_fraction: float = 0.25) -> tuple[AugmentedModel, Effect]:
     """Add the effect ``name`` to ``model`` and fit it, with the baseline, on (u, y).
 
@@ -654,7 +700,9 @@ def fit_effect(name: str, model: AugmentedModel, narx: NarxModel, u, y, *,
     screen_narx : NarxModel, optional
         Cheaper template for the one-dimensional parameter searches (default ``narx``).
     iterations : int
-        Alternations between the effect's least squares and the baseline refit (creep, drift).
+        Extra alternations between the creep's least squares and the baseline refit (0: one
+        pass; on the plant more alternations made the estimate wander, e.g. tau 3.6 s ->
+        120 s on a 60 s record).
     val_fraction : float
         Share at the end of (u, y) scoring the parameter searches (free-run RMSE).
 

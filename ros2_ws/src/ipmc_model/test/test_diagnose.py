@@ -21,7 +21,7 @@ from ipmc_model.diagnose import choose_lag_step, diagnose
 from ipmc_model.diagnose_cli import main
 
 RATE = 50.0
-FAST = {"C": 5000.0, "sigma": 2.0, "lag_step": 4, "max_rows": 500, "screen_rows": 250}
+FAST = {"C": 1000.0, "sigma": 3.0, "lag_step": 5, "max_rows": 800, "screen_rows": 300}
 KEYS = {"effects_found", "rmse_before_mm", "rmse_after_mm", "metric", "candidates",
         "model_before", "model_after"}
 
@@ -45,21 +45,27 @@ def test_import_leaves_rclpy_out():
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
 
 
-def test_no_effect_found_on_clean_plant():
-    t, u, y = _plant({}, seed=0)
+@pytest.mark.parametrize("seed", [0, 2])  # seed 2 was not used to set anything
+def test_no_effect_found_on_clean_plant(seed):
+    t, u, y = _plant({}, seed=seed)
     d = diagnose(t, u, y, **FAST)
     assert d.effects_found == []
     assert d.rmse_after_mm == d.rmse_before_mm
     assert all(not c.accepted for c in d.candidates)
 
 
-@pytest.mark.xfail(strict=False, reason="open: the baseline LSSVM-NARX's held-out free-run "
-                   "error and refit spread are as large as the creep itself (docs/diagnose.md)")
-def test_creep_found_with_undeclared_parameters():
-    t, u, y = _plant({"creep": {"tau_s": 12.0, "gain_mm_per_v": -0.6}}, seed=1)
-    d = diagnose(t, u, y, **FAST)
-    assert "creep" in d.effects_found
-    assert d.rmse_after_mm < 0.8 * d.rmse_before_mm
+@pytest.mark.parametrize("seed, creep", [
+    (1, {"tau_s": 12.0, "gain_mm_per_v": -0.6}),
+    # not tuned on: another seed, a faster and smaller creep; open: the creep candidate gives
+    # 8.9 % (needs 10 %) because its tau lands on the grid's lower end (docs/diagnose.md)
+    pytest.param(4, {"tau_s": 8.0, "gain_mm_per_v": -0.4},
+                 marks=pytest.mark.xfail(strict=False, reason="open: creep tau estimate")),
+])
+def test_creep_found_with_undeclared_parameters(seed, creep):
+    t, u, y = _plant({"creep": creep}, seed=seed, seconds=90.0)
+    d = diagnose(t, u, y, candidates=("creep", "drift", "delay", "saturation"), **FAST)
+    assert d.effects_found[:1] == ["creep"]
+    assert d.rmse_after_mm < 0.7 * d.rmse_before_mm
 
 
 def test_cli_writes_the_contract(tmp_path):

@@ -24,7 +24,9 @@ RATE = 50.0
 
 
 def _narx(rows=400):
-    return NarxModel(LSSVMRegressor(C=5000.0, sigma=2.0), lag_step=4, max_rows=rows)
+    # the structure ipmc diagnose identifies (diagnose.BASELINE_INPUT_LAGS / _OUTPUT_LAGS)
+    return NarxModel(LSSVMRegressor(C=1000.0, sigma=3.0), input_lags=12, output_lags=0,
+                     lag_step=5, max_rows=rows)
 
 
 @pytest.fixture(scope="module")
@@ -151,8 +153,14 @@ def test_save_load_round_trip(tmp_path, base):
         load_augmented(tmp_path / "bad.json")
 
 
-def test_fit_creep_recovers_parameters_on_baseline_plus_creep(record, base):
-    u, _ = record
+def test_fit_creep_recovers_parameters_on_baseline_plus_creep():
+    # 180 s: the creep is estimated from a cross-fitted residual, each half (90 s) predicted by
+    # a baseline fitted on the other; on 60 s records tau is poorly determined (docs/diagnose.md)
+    _, us = random_sine(180, RATE, 2.5, (0.05, 1.0), 8, seed=2)
+    _, st = random_steps(180, RATE, 1.5, (3.0, 10.0), seed=1)
+    u = np.clip(0.6 * us + st, -3, 3)
+    base = AugmentedModel.identify(_narx(), u, IpmcPlant(seed=0, dt_s=1 / RATE).run(u).y_mm,
+                                   (), 1 / RATE)
     true = Effect("creep", tau_s=8.0, gain_mm_per_v=-0.4)
     y = AugmentedModel(base.baseline, [true], base.dt_s).simulate(u)
     m, eff = fit_effect("creep", AugmentedModel(base.baseline, [], base.dt_s), _narx(), u, y)
