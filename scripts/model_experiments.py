@@ -131,8 +131,8 @@ def paper(args) -> dict:
         print("|---|---|---|---|---|")
         for lags, lag_step in args.structures:
             t0 = time.perf_counter()
-            m, tuning = identify_lssvm_narx(u, y, input_lags=lags, output_lags=lags,
-                                            lag_step=lag_step, inverse=True,
+            m, tuning = identify_lssvm_narx(u, y, input_lags=args.inverse_input_lags,
+                                            output_lags=lags, lag_step=lag_step, inverse=True,
                                             n_sources=args.budget[0], n_cycles=args.budget[1],
                                             seed=args.seed, n_folds=args.folds,
                                             n_prototypes=args.prototypes, progress=_progress,
@@ -144,8 +144,8 @@ def paper(args) -> dict:
                 res[k] = {"free_run": rmse(v.u_v, us, L) if np.all(np.isfinite(us))
                           else float("inf"),
                           "one_step": rmse(v.u_v, m.predict(v.y_mm, v.u_v), L), "skipped": L}
-            name = (f"inverse LSSVM-NARX ABC, lags {lags}/{lags}, lag step "
-                    f"{_steps_text(lag_step)}")
+            name = (f"inverse LSSVM-NARX ABC, {lags} past displacements, "
+                    f"{args.inverse_input_lags} past voltages, lag step {_steps_text(lag_step)}")
             rows[name] = {"validation": res, "tuning": tuning.as_dict()}
             cells = " | ".join(f"{r['one_step']:.3f} / {r['free_run']:.3f}"
                                for r in res.values())
@@ -280,6 +280,9 @@ def main(argv=None) -> int:
     p.add_argument("--structures", default="6:auto",
                    help="paper: comma list of LAGS:STEP, STEP an integer, a /-list searched "
                         "by the tuning, or auto")
+    p.add_argument("--inverse-input-lags", type=int, default=0,
+                   help="paper: past voltages m of the inverse models (default 0: no voltage "
+                        "feedback, which keeps the free run from drifting)")
     p.add_argument("--folds", type=int, default=4, help="tuning validation folds (1: holdout)")
     p.add_argument("--prototypes", type=int, default=500, help="fixed-size prototypes")
     p.add_argument("--models", default="baselines,forward,inverse",

@@ -53,6 +53,10 @@ def test_identify_pi_and_inverse(tmp_path, csvs):
                         "--tune", "none", "--C", "100", "--sigma", "2",
                         "--out", str(tmp_path / "inv.json")])
     assert rc == 0
+    inv = load_model(tmp_path / "inv.json")
+    assert inv.input_lags == 0  # default inverse: no voltage feedback
+    u_free = inv.stepper()
+    assert np.isfinite(u_free.step(0.5))
     rc = evaluate_main(["--model", str(tmp_path / "inv.json"), "--data", str(test),
                         "--json", str(tmp_path / "inv_metrics.json")])
     assert rc == 0
