@@ -51,8 +51,9 @@ from ipmc_model.residuals import ResidualMonitor
 SAMPLE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
                         reliability=QoSReliabilityPolicy.RELIABLE,
                         durability=QoSDurabilityPolicy.VOLATILE)
-FEEDFORWARD_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
-                             reliability=QoSReliabilityPolicy.RELIABLE)
+# A sample topic like the others (docs/interfaces.md: reliable, depth 100): at depth 10 a busy
+# lock-step run lost feedforwards, and the controller waiting for one fell back to PID.
+FEEDFORWARD_QOS = SAMPLE_QOS
 DIAGNOSTICS_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
                              reliability=QoSReliabilityPolicy.RELIABLE)
 HARDWARE_ID = "ipmc"
