@@ -2,9 +2,14 @@
 
 - ``-h``/``--help`` prints the node's docstring and usage without starting ROS (a ROS user's
   first question, and what the colcon test asks of an installed executable).
-- SIGINT (rclpy's handler) and SIGTERM (ours, as ``bringup``/``launch`` stop children with it)
-  both leave ``spin()`` the same way, so ``destroy_node()`` always runs: that is where a node
-  makes hardware safe (0 V) and closes files.
+- SIGINT and SIGTERM (``bringup``/``launch`` stop children with it) both leave ``spin()`` as an
+  exception while the ROS context is still up, so ``destroy_node()`` always runs AND can still
+  publish: that is where a node makes hardware safe (the controller's last 0 V command, the
+  driver's 0 V frame) and closes files. rclpy's own handlers are off on purpose: they shut the
+  context down under the executor, after which the last command cannot be sent and a message
+  being taken raises RuntimeError (ros/joint_state_publisher#117).
+- A 0.1 s wall-clock timer wakes the executor so the Python signal handler runs promptly even
+  when a node's own timers follow a simulated clock that has stopped.
 - A node that cannot start (bad parameter, missing port) prints one line and exits 1.
 """
 
@@ -15,9 +20,16 @@ import sys
 from collections.abc import Callable
 
 import rclpy
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
+
+WAKE_PERIOD_S = 0.1
+
+
+def _wake() -> None:
+    """No-op: its only job is to return the executor to Python so signals are handled."""
 
 
 class Terminated(Exception):
@@ -51,11 +63,13 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None, *, name
         if usage:
             print(f"\nusage: {usage}")
         return
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.SIGINT)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
     previous = signal.signal(signal.SIGTERM, _on_sigterm)
     node = None
     try:
         node = factory()
+        node.create_timer(WAKE_PERIOD_S, _wake, clock=Clock(clock_type=ClockType.STEADY_TIME))
         if executor is None:
             rclpy.spin(node)
         else:
@@ -67,10 +81,13 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None, *, name
         print(f"{name}: error: {exc}", file=sys.stderr)
         raise SystemExit(1) from None
     finally:
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second TERM must not skip cleanup
+        # A second signal must not cut the cleanup short.
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         try:
             if node is not None:
                 node.destroy_node()
         finally:
             signal.signal(signal.SIGTERM, previous)
+            signal.signal(signal.SIGINT, previous_int)
             rclpy.try_shutdown()

@@ -35,24 +35,20 @@ x in m) and ``/ipmc/feedforward`` (Vector3Stamped, x in V); publishes ``/ipmc/co
 from __future__ import annotations
 
 import math
-import signal
-import sys
 import time
 from collections import OrderedDict, deque
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PointStamped, Vector3Stamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import Float64
 
 from ipmc_control.hybrid import HybridController, check_mode
 from ipmc_control.pid import PID, ControlParameterError
+from ipmc_driver.node_runtime import run_node
 
 # Inputs: reliable and deep like their publishers (docs/interfaces.md), so that a lock-step
 # burst loses no sample; the loop keys references and feedforwards by stamp.
@@ -418,35 +414,11 @@ class Controller(Node):
         super().destroy_node()
 
 
-def _raise_keyboard_interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt
-
-
 def main(args: list[str] | None = None) -> None:
-    argv = sys.argv if args is None else args
-    if "-h" in argv or "--help" in argv:
-        print(__doc__)
-        print("usage: controller [--ros-args -p mode:=pid|inverse|hybrid -p k:=1.2 -p ti_s:=0.87 "
-              "-p td_s:=0.13 -p rate_hz:=100.0 -p trigger:=timer|measurement "
-              "-p use_sim_time:=true]")
-        return
-    # rclpy's own SIGINT/SIGTERM handlers shut the context down under the executor: the last
-    # 0 V command can then no longer be sent, and a message being taken at that instant raises
-    # RuntimeError from take_message (exit code 1; seen here under load, also reported as
-    # ros/joint_state_publisher#117). Signals become KeyboardInterrupt instead, so the context
-    # is still up in destroy_node; spin wakes at least every diagnostics period to notice.
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
-    node = None
-    try:
-        node = Controller()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(Controller, args, name="controller", doc=__doc__,
+             usage="controller [--ros-args -p mode:=pid|inverse|hybrid -p k:=1.2 -p ti_s:=0.87 "
+                   "-p td_s:=0.13 -p rate_hz:=100.0 -p trigger:=timer|measurement "
+                   "-p use_sim_time:=true]")
 
 
 if __name__ == "__main__":

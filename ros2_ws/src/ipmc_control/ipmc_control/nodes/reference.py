@@ -22,17 +22,15 @@ refuses the change with its reason; the time base continues.
 from __future__ import annotations
 
 import math
-import sys
 
-import rclpy
 from geometry_msgs.msg import PointStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 
 from ipmc_control.pid import ControlParameterError
 from ipmc_control.references import KINDS, Reference, make_reference
+from ipmc_driver.node_runtime import run_node
 
 # Reliable and deep (docs/interfaces.md): in lock-step bursts no reference sample may be lost.
 REFERENCE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
@@ -158,28 +156,10 @@ class ReferenceNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    argv = sys.argv if args is None else args
-    if "-h" in argv or "--help" in argv:
-        print(__doc__)
-        print("usage: reference [--ros-args -p kind:=sine -p amplitude_mm:=2.5 "
-              "-p frequency_hz:=0.159 -p rate_hz:=100.0 -p use_sim_time:=true]")
-        return
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = ReferenceNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except RuntimeError:
-        # rclpy's signal handler shuts the context down under the executor; a message taken
-        # at that instant raises RuntimeError from take_message (ros/joint_state_publisher#117).
-        if rclpy.ok():
-            raise
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(ReferenceNode, args, name="reference", doc=__doc__,
+             usage="reference [--ros-args -p kind:=sine -p amplitude_mm:=2.5 "
+                   "-p frequency_hz:=0.159 -p rate_hz:=100.0 -p preview_s:=0.0 "
+                   "-p use_sim_time:=true]")
 
 
 if __name__ == "__main__":

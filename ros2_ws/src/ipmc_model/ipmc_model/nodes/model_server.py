@@ -28,21 +28,19 @@ node keeps no timers on the ROS clock, so it runs as well under ``use_sim_time:=
 from __future__ import annotations
 
 import math
-import sys
 import time
 from collections import OrderedDict, deque
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PointStamped, Vector3Stamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 from std_srvs.srv import Trigger
 
+from ipmc_driver.node_runtime import run_node
 from ipmc_model.narx import InverseNarxModel, NarxModel
 from ipmc_model.persistence import load_model
 from ipmc_model.residuals import ResidualMonitor
@@ -459,26 +457,12 @@ class ModelServer(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    argv = sys.argv if args is None else args
-    if "-h" in argv or "--help" in argv:
-        print(__doc__)
-        print("usage: model_server [--ros-args -p model_file:=MODEL.json "
-              "-p inverse_model_file:=INVERSE.json -p u_max_v:=3.0 "
-              "-p history_voltage:=applied|clamped|model -p monitor_residual:=one_step|free_run "
-              "-p use_sim_time:=true]\n"
-              "service: /model_server/reload (std_srvs/srv/Trigger)")
-        return
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = ModelServer()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(ModelServer, args, name="model_server", doc=__doc__,
+             usage="model_server [--ros-args -p model_file:=MODEL.json "
+                   "-p inverse_model_file:=INVERSE.json -p u_max_v:=3.0 "
+                   "-p history_voltage:=applied|clamped|model "
+                   "-p monitor_residual:=one_step|free_run -p use_sim_time:=true]\n"
+                   "service: /model_server/reload (std_srvs/srv/Trigger)")
 
 
 if __name__ == "__main__":
