@@ -1,7 +1,7 @@
 """``ipmc track``: the paper's tracking experiments on the simulated IPMC, in process or through
 the ROS graph (separate processes over real DDS, lock-step clock).
 
-    ipmc track --model INVERSE.json --reference sine|random|random-reachable|constant
+    ipmc track --model INVERSE.json --reference sine|random|random-reachable|constant[-reachable]
                --mode pid|inverse|hybrid
                [--graph] [--plant-effect creep] --json OUT
 
