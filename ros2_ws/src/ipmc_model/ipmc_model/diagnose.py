@@ -584,7 +584,7 @@ def creep_hold_experiment(*, identify_s: float = 120.0, duration_s: float | None
     diagnosis adds the creep to the model (RMSE in mm, every sample counts).
 
     ``reference`` is an ``ipmc_control.experiment`` reference: ``"constant"`` (the paper's
-    4 mm hold, here -4 mm: at the plant's limit under 3 V) or ``"constant-reachable"`` (-3.5 mm).
+    4 mm hold, here -4 mm: at the plant's limit under 3 V) or ``"constant-reachable"`` (-3 mm).
 
     1. Identification record: ``identify_s`` of random sine + random steps (holds of 3-10 s, so
        the creep shows) on ``IpmcPlant(effects={"creep": creep})`` at ``rate_hz``.
