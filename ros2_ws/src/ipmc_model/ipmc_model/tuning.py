@@ -54,7 +54,7 @@ DEFAULT_LAG_STEPS = (1, 5, 10, 20)
 #: exact solve is O(N^3) per tuning candidate, 2000 rows take about 1 s.
 DEFAULT_MAX_EXACT = 2000
 
-#: Memory kept for fixed-size Gram matrices while tuning (bytes).
+#: Memory kept for fixed-size Gram matrices while tuning (bytes, shared by the folds).
 _CACHE_BYTES = 400 * 2**20
 
 
@@ -150,8 +150,10 @@ class _CandidateFactory:
     """Fits candidate regressors on one structure's rows, as the final fit will (see module
     docstring), keeping fixed-size Gram matrices per sigma."""
 
-    def __init__(self, X, t, exact: bool, n_prototypes: int, seed):
+    def __init__(self, X, t, exact: bool, n_prototypes: int, seed,
+                 cache_bytes: int = _CACHE_BYTES):
         self.X, self.t = X, t
+        self.cache_bytes = cache_bytes
         self.n_prototypes, self.seed = n_prototypes, seed
         self.exact = exact
         self.idx = None if self.exact else select_prototypes(X, n_prototypes, "kmeans++", seed)
@@ -164,7 +166,7 @@ class _CandidateFactory:
         if stats is None:
             stats = FixedSizeStatistics(self.X, self.t, self.idx, sigma)
             self.cache[sigma] = stats
-            while sum(v.nbytes for v in self.cache.values()) > _CACHE_BYTES:
+            while sum(v.nbytes for v in self.cache.values()) > self.cache_bytes:
                 self.cache.popitem(last=False)
         else:
             self.cache.move_to_end(sigma)
@@ -301,7 +303,7 @@ def tune_lssvm_narx(
                 if cap is not None and keep.size > cap:
                     keep = keep[np.linspace(0, keep.size - 1, cap).round().astype(int)]
                 make = _CandidateFactory(rows.X_[keep], rows.y_[keep], n_final <= max_exact,
-                                         n_prototypes, seed)
+                                         n_prototypes, seed, _CACHE_BYTES // len(blocks))
                 folds.append((lo, hi, make))
 
             def cost(p, _skel=skel, _folds=folds):

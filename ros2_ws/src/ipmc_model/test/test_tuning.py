@@ -95,3 +95,16 @@ def test_tuned_candidate_is_the_final_regressor_class(hyst_data):
     assert isinstance(model.regressor_, FixedSizeLSSVMRegressor)
     assert model.regressor_.n_centers_ == 50
     assert np.log10(tuning.sigma) == pytest.approx(round(np.log10(tuning.sigma) / 0.05) * 0.05)
+
+
+def test_gram_cache_eviction_does_not_change_candidates():
+    from ipmc_model.tuning import _CandidateFactory
+
+    rng = np.random.default_rng(1)
+    X = rng.standard_normal((400, 3))
+    t = np.sin(X[:, 0]) + 0.1 * X[:, 1]
+    big = _CandidateFactory(X, t, False, 30, 0)
+    tiny = _CandidateFactory(X, t, False, 30, 0, cache_bytes=1)
+    for C, s in [(10.0, 1.0), (100.0, 2.0), (1000.0, 1.0)]:
+        np.testing.assert_allclose(big(C, s).predict(X), tiny(C, s).predict(X), atol=1e-12)
+    assert len(tiny.cache) == 1 and len(big.cache) == 2
