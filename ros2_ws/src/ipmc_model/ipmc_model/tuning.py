@@ -166,7 +166,8 @@ class _CandidateFactory:
         if stats is None:
             stats = FixedSizeStatistics(self.X, self.t, self.idx, sigma)
             self.cache[sigma] = stats
-            while sum(v.nbytes for v in self.cache.values()) > self.cache_bytes:
+            while len(self.cache) > 1 and sum(v.nbytes for v in self.cache.values()) > \
+                    self.cache_bytes:
                 self.cache.popitem(last=False)
         else:
             self.cache.move_to_end(sigma)
