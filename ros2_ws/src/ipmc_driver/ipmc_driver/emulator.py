@@ -378,14 +378,28 @@ class RigEmulator:
                 stop.wait(min(sleep_s, 0.05))
 
 
-def _read_stdin(emulator: RigEmulator, stream) -> None:
-    for line in stream:
-        if not line.strip():
-            continue
+def _read_stdin(emulator: RigEmulator, fd: int = 0) -> None:
+    # os.read, not sys.stdin: a daemon thread blocked inside sys.stdin holds its buffer lock,
+    # which the interpreter needs at exit (a stall, or "could not acquire lock ... at interpreter
+    # shutdown, possibly due to daemon threads").
+    pending = b""
+    while True:
         try:
-            emulator.inject(parse_fault(line))
-        except ValueError as exc:
-            print(f"rig_emulator: {exc}", file=sys.stderr, flush=True)
+            chunk = os.read(fd, 4096)
+        except OSError:
+            return
+        if not chunk:
+            return
+        pending += chunk
+        *lines, pending = pending.split(b"\n")
+        for raw in lines:
+            line = raw.decode("utf-8", "replace")
+            if not line.strip():
+                continue
+            try:
+                emulator.inject(parse_fault(line))
+            except ValueError as exc:
+                print(f"rig_emulator: {exc}", file=sys.stderr, flush=True)
 
 
 def _build_parser() -> argparse.ArgumentParser:
@@ -445,10 +459,14 @@ def main(argv: list[str] | None = None) -> int:
         events=sys.stdout if args.events else None,
     )
     stop = threading.Event()
+    # Both signals only set the event: the loop ends at its next wait (<= 50 ms), never with an
+    # exception thrown into the middle of a write or a plant step.
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
         print(emulator.open_device(), flush=True)
-        threading.Thread(target=_read_stdin, args=(emulator, sys.stdin), daemon=True).start()
+        threading.Thread(target=_read_stdin, args=(emulator, sys.stdin.fileno()),
+                         daemon=True).start()
         emulator.run(stop, args.duration_s)
     except KeyboardInterrupt:
         pass
