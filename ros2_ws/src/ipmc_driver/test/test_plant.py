@@ -71,9 +71,13 @@ def test_unknown_effect_is_refused_with_the_known_list():
 
 
 def test_all_effects_are_off_by_default():
+    # The shipped file defines every effect's parameters; none may act unless switched on.
+    assert IpmcPlant().effects == {}
+    bare = load_plant_params()
+    bare["effects"] = {}
     u = np.full(3000, -2.0)
-    base = IpmcPlant().run(u).y_true_mm
-    np.testing.assert_array_equal(base, IpmcPlant(effects=()).run(u).y_true_mm)
+    np.testing.assert_array_equal(IpmcPlant().run(u).y_true_mm,
+                                  IpmcPlant(bare).run(u).y_true_mm)
 
 
 def hold(effects, u_v=-2.0, seconds=60.0):
