@@ -118,8 +118,6 @@ def spin_until(node, predicate, timeout_s: float, context=None) -> bool:
         executor.remove_node(node)
 
 
-__all__ = ["GRACE_S", "Processes", "spin_until"]
-
 
 @pytest.fixture
 def spin():

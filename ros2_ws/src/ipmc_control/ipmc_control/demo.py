@@ -74,8 +74,15 @@ class Demo:
         return code
 
     def path(self, *parts: str) -> str:
+        """A file under --out, its folder created."""
         p = self.out.joinpath(*parts)
         p.parent.mkdir(parents=True, exist_ok=True)
+        return str(p)
+
+    def folder(self, *parts: str) -> str:
+        """A folder under --out, created."""
+        p = self.out.joinpath(*parts)
+        p.mkdir(parents=True, exist_ok=True)
         return str(p)
 
     # 1 -----------------------------------------------------------------------------------------
@@ -161,7 +168,7 @@ class Demo:
         self.banner("4. The residual loop: an effect nobody declared")
         data = self.path("data", "rig_creep.csv")
         self.ipmc("simulate", *CREEP_DATA, "--out", data)
-        report = self.path("diagnose", "x")[:-2]
+        report = self.folder("diagnose")
         self.ipmc("diagnose", "--data", data, "--report", report)
         s = json.loads((Path(report) / "summary.json").read_text())
         self.summary += [

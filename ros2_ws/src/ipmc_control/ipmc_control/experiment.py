@@ -80,7 +80,7 @@ def tracking_summary(t_s, reference_mm, y_mm, u_v) -> dict:
         "rmse_mm": float(np.sqrt(np.mean(err ** 2))),
         "max_abs_mm": float(np.max(np.abs(err))),
         "u_max_v": float(np.max(np.abs(u_v))),
-        "duration_s": float(n / (1.0 / np.median(np.diff(t_s)))) if n > 1 else 0.0,
+        "duration_s": n * float(np.median(np.diff(t_s))) if n > 1 else 0.0,
         "samples": n,
     }
 

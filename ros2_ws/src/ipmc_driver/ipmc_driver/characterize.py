@@ -71,10 +71,14 @@ def characterize(params: dict | None = None, effects=(), seed: int = 0,
             for a in AMPLITUDES_V for f in FREQUENCIES_HZ]
 
 
+def frequency_label(frequency_hz: float) -> str:
+    """The paper's name ("0.5/2pi", "1/2pi", "5/2pi") of the nearest Table 1 frequency."""
+    return FREQUENCY_LABELS[int(np.argmin([abs(frequency_hz - f) for f in FREQUENCIES_HZ]))]
+
+
 def paper_row(amplitude_v: float, frequency_hz: float) -> tuple[float, float, float]:
     """The paper's (lower, upper, range) in mm for one condition."""
-    label = FREQUENCY_LABELS[int(np.argmin([abs(frequency_hz - f) for f in FREQUENCIES_HZ]))]
-    return PAPER_TABLE1[(amplitude_v, label)]
+    return PAPER_TABLE1[(amplitude_v, frequency_label(frequency_hz))]
 
 
 def format_table(records: list[dict]) -> str:
@@ -87,8 +91,7 @@ def format_table(records: list[dict]) -> str:
     ]
     for rec in records:
         plo, pup, prg = paper_row(rec["amplitude_v"], rec["frequency_hz"])
-        label = FREQUENCY_LABELS[FREQUENCIES_HZ.index(rec["frequency_hz"])] \
-            if rec["frequency_hz"] in FREQUENCIES_HZ else f"{rec['frequency_hz']:.4f}"
+        label = frequency_label(rec["frequency_hz"])
         err = 100.0 * (rec["range_mm"] - prg) / prg
         lines.append(
             f"{rec['amplitude_v']:>3.0f} {label:>11} | {rec['lower_mm']:>7.3f} "
@@ -107,7 +110,7 @@ def plot_records(records: list[dict], out_dir: Path) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
     for rec in records:
-        label = FREQUENCY_LABELS[FREQUENCIES_HZ.index(rec["frequency_hz"])]
+        label = frequency_label(rec["frequency_hz"])
         fig = plt.figure(figsize=(10, 5))
         ax_u = fig.add_subplot(2, 2, 1)
         ax_y = fig.add_subplot(2, 2, 3, sharex=ax_u)
@@ -134,7 +137,7 @@ def plot_records(records: list[dict], out_dir: Path) -> list[Path]:
     ax.bar(x + 0.2, [paper_row(r["amplitude_v"], r["frequency_hz"])[2] for r in records], 0.4,
            label="paper Table 1")
     ax.set_xticks(x, [f"{r['amplitude_v']:.0f}V\n"
-                      f"{FREQUENCY_LABELS[FREQUENCIES_HZ.index(r['frequency_hz'])]}"
+                      f"{frequency_label(r['frequency_hz'])}"
                       for r in records])
     ax.set_ylabel("tip displacement range (mm)")
     ax.legend()
