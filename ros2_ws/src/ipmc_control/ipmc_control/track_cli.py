@@ -143,6 +143,11 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
             # This probe sees every node; let the nodes see each other too (the controller
             # must know model_server is there to wait for its first feedforward).
             time.sleep(DISCOVERY_SETTLE_S)
+            # The plant's clock starts only when it has matched every listener this probe sees
+            # (the probe itself included): a late match would cut the start of the recording.
+            plant_spec.params["lockstep_min_subscribers"] = node.count_subscribers(
+                "/ipmc/displacement")
+            plant_spec.params["lockstep_min_clock_subscribers"] = node.count_subscribers("/clock")
             graph.start(plant_spec)
             print(f"graph up in {time.monotonic() - t_wall:.1f} s; running {duration_s:g} s "
                   "of simulated time (lock-step)", file=log, flush=True)

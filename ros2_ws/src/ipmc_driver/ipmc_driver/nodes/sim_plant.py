@@ -54,6 +54,12 @@ class SimPlant(Node):
             description="realtime | lockstep (publishes /clock)", read_only=True))
         self.declare_parameter("lockstep_timeout_s", 0.2, ParameterDescriptor(
             description="lockstep: longest wall-time wait for a command before stepping anyway"))
+        self.declare_parameter("lockstep_min_subscribers", 1, ParameterDescriptor(
+            description="lockstep: time starts once this many nodes subscribe to "
+                        "/ipmc/displacement (so a late recorder misses nothing)", read_only=True))
+        self.declare_parameter("lockstep_min_clock_subscribers", 0, ParameterDescriptor(
+            description="lockstep: ... and this many to /clock (nodes on use_sim_time)",
+            read_only=True))
         self.declare_parameter("params_file", "", ParameterDescriptor(
             description="plant parameter YAML ('' = shipped default)", read_only=True))
         self.declare_parameter("effects", [""], ParameterDescriptor(
@@ -68,6 +74,10 @@ class SimPlant(Node):
             raise ValueError(f"need rate_hz > 0 and clock_mode in {CLOCK_MODES}, "
                              f"got {rate_hz} and '{mode}'")
         self.lockstep = mode == "lockstep"
+        self._min_subscribers = int(self.get_parameter("lockstep_min_subscribers").value)
+        self._min_clock_subscribers = int(
+            self.get_parameter("lockstep_min_clock_subscribers").value)
+        self._started = False
         self.dt_s = 1.0 / rate_hz
         effects = [e for e in self.get_parameter("effects").value if e]
         params = load_plant_params(self.get_parameter("params_file").value or None)
@@ -113,8 +123,13 @@ class SimPlant(Node):
         self._publish_sample(*self.plant.step(self.command_v))
 
     def _on_lockstep_tick(self) -> None:
-        if self.count_subscribers("/ipmc/displacement") == 0:
-            return  # time stands still until someone listens: no sample is lost at start-up
+        if not self._started:
+            # Time stands still until everyone expected listens: no sample is lost at start-up.
+            self._started = (
+                self.count_subscribers("/ipmc/displacement") >= max(1, self._min_subscribers)
+                and self.count_subscribers("/clock") >= self._min_clock_subscribers)
+            if not self._started:
+                return
         answered = self.command_count > self._count_at_sample
         waited = time.monotonic() - self._sample_wall
         nobody = self.count_publishers("/ipmc/command") == 0
