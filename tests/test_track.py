@@ -19,7 +19,10 @@ from ipmc_driver.signals import random_sine
 
 VENV_BIN = Path(sys.executable).parent
 KEYS = {"rmse_mm", "max_abs_mm", "u_max_v", "duration_s", "samples"}
-GRAPH_S = 6.0     # simulated seconds of the graph run (lock-step: about 15 s wall)
+# The whole sine experiment (4 periods): the claim is about the experiment. On a 6 s window the
+# graph's start (the plant runs a few samples before the reference begins, so the first commands
+# and the noise are offset) moved the RMSE by up to 25 %; over 25 s by at most 8 % (5 runs).
+GRAPH_S = 4 * 2 * 3.141592653589793
 
 
 @pytest.fixture(scope="module")
@@ -83,7 +86,8 @@ def test_track_graph_agrees_with_in_process_within_10_percent(inverse_file, ros_
     assert out.returncode == 0, out.stderr[-3000:]
     a, b = json.loads(inproc.read_text()), json.loads(graph.read_text())
     assert set(b) == KEYS
-    assert b["samples"] >= 0.9 * a["samples"]
+    # Lock-step: nothing lost at the start (+-1: the window's end falls between samples).
+    assert abs(b["samples"] - a["samples"]) <= 1
     assert b["u_max_v"] <= 3.0
     assert b["rmse_mm"] == pytest.approx(a["rmse_mm"], rel=0.10), (a, b)
     assert "slow exits" not in out.stderr, out.stderr[-2000:]
