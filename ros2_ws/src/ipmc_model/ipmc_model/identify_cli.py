@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -54,6 +55,18 @@ def _budget(text: str) -> tuple[int, int]:
     if s < 2 or c < 1:
         raise argparse.ArgumentTypeError(f"budget needs >= 2 sources and >= 1 cycle: {text!r}")
     return s, c
+
+
+def _memory_taus(text: str) -> tuple[float, ...]:
+    try:
+        taus = tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"memory taus must be a comma list of time constants in seconds, got {text!r}"
+        ) from None
+    if not taus or not all(math.isfinite(v) and v > 0 for v in taus):
+        raise argparse.ArgumentTypeError(f"memory taus must be positive seconds, got {text!r}")
+    return taus
 
 
 def _lag_step(text: str):
@@ -160,6 +173,11 @@ def _identify_parser() -> argparse.ArgumentParser:
                         "(e.g. 5,10,20) or 'auto' (searches "
                         f"{','.join(map(str, DEFAULT_LAG_STEPS))}; needs --tune abc). Default: "
                         "auto with --tune abc, 1 with --tune none")
+    p.add_argument("--memory-taus", type=_memory_taus, default=(), metavar="TAU[,TAU..]",
+                   help="lssvm-narx --inverse: memory channels, the desired displacement "
+                        "low-passed with these time constants (s, comma list, e.g. 1.0); they "
+                        "let the inverse undo the IPMC's back-relaxation without a voltage "
+                        "recursion (default none: the paper's structure)")
     p.add_argument("--prototypes", type=int, default=DEFAULT_PROTOTYPES,
                    help=f"lssvm-narx: fixed-size prototypes above --max-exact rows (default "
                         f"{DEFAULT_PROTOTYPES})")
@@ -198,6 +216,8 @@ def identify_main(argv: list[str] | None = None) -> int:
                                       seed=args.seed).fit(u, y)
         else:
             tune = args.tune == "abc"
+            if args.memory_taus and not args.inverse:
+                raise ValueError("--memory-taus is for an inverse model: add --inverse")
             if args.input_lags is None:
                 args.input_lags = DEFAULT_INVERSE_INPUT_LAGS if args.inverse else DEFAULT_LAGS
             if args.lag_step is None:
@@ -210,6 +230,7 @@ def identify_main(argv: list[str] | None = None) -> int:
                 C=None if tune else args.C, sigma=None if tune else args.sigma,
                 input_lags=args.input_lags, output_lags=args.output_lags,
                 lag_step=args.lag_step, inverse=args.inverse, seed=args.seed,
+                memory_taus_s=args.memory_taus, dt_s=1.0 / float(rec.rate_hz),
                 n_prototypes=args.prototypes, max_exact=args.max_exact,
                 max_train_rows=args.max_rows,
                 **({"n_sources": args.budget[0], "n_cycles": args.budget[1],

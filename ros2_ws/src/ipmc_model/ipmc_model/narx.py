@@ -344,10 +344,19 @@ class NarxStepper:
 
 
 class InverseNarxModel:
-    """Inverse NARX model u_l = h(y_l..y_{l-n}, u_{l-1}..u_{l-m}) (paper Eq. 19).
+    """Inverse NARX model u_l = h(y_l..y_{l-n}, u_{l-1}..u_{l-m}, m_1,l..m_J,l) (paper Eq. 19).
 
     A feedforward compensator: given the desired displacement it returns the voltage. It is a
     :class:`NarxModel` with the roles of the signals swapped (attribute ``narx_``).
+
+    ``memory_taus_s`` adds memory channels: the displacement low-passed with each time constant,
+    ``m_j,l = a_j m_j,l-1 + (1 - a_j) y_l``, ``a_j = exp(-dt_s / tau_j)``, fed to the regressor
+    beside the lagged displacements. Why: the IPMC relaxes back part of its bending (water
+    back-diffusion, tau ~ 0.5 s); the inverse of that relaxation has a pole about twice as slow
+    (tau / (1 - share) ~ 1 s), which a few lags spaced tens of ms apart cannot represent and
+    past voltages represent only by a free-running recursion that drifts at 100 Hz. A low-passed
+    displacement is that pole, fed from the desired trajectory alone, so it cannot drift
+    (the orthonormal-basis / Laguerre idea of linear system identification).
 
     Parameters
     ----------
@@ -359,17 +368,43 @@ class InverseNarxModel:
         m: past voltages u_{l-1}..u_{l-m} (paper: 3).
     lag_step, standardize, max_rows
         As :class:`NarxModel`.
+    memory_taus_s : sequence of float
+        Time constants of the memory channels, s (default none: the paper's structure).
+    dt_s : float
+        Sample period of the data the model is fitted on and run at, s (the memory channels
+        are discretised with it).
     """
 
     def __init__(self, regressor=None, output_lags: int = 3, input_lags: int = 3,
-                 lag_step: int = 1, standardize=True, max_rows: int | None = None):
+                 lag_step: int = 1, standardize=True, max_rows: int | None = None,
+                 memory_taus_s=(), dt_s: float = 0.01):
         self.regressor = regressor
         self.output_lags = output_lags
         self.input_lags = input_lags
         self.lag_step = lag_step
         self.standardize = standardize
         self.max_rows = max_rows
+        self.memory_taus_s = tuple(float(v) for v in memory_taus_s)
+        self.dt_s = float(dt_s)
         self.narx_ = None
+
+    def _memory_poles(self) -> np.ndarray:
+        taus = np.asarray(self.memory_taus_s, dtype=float)
+        if np.any(~np.isfinite(taus)) or np.any(taus <= 0.0):
+            raise ValueError(f"memory_taus_s must be positive time constants (s), got "
+                             f"{list(self.memory_taus_s)}")
+        if not (self.dt_s > 0.0 and np.isfinite(self.dt_s)):
+            raise ValueError(f"dt_s must be a positive sample period (s), got {self.dt_s!r}")
+        return np.exp(-self.dt_s / taus)
+
+    def _channels(self, y: np.ndarray) -> np.ndarray:
+        """Displacement (N,) -> regressor channels: y alone, or (N, 1 + J) with the memories."""
+        if not self.memory_taus_s:
+            return y
+        from scipy.signal import lfilter
+
+        cols = [y] + [lfilter([1.0 - a], [1.0, -a], y) for a in self._memory_poles()]
+        return np.column_stack(cols)
 
     def fit(self, u, y) -> InverseNarxModel:
         """Fit on the plant's input ``u`` (V) and output ``y`` (mm); returns self."""
@@ -381,10 +416,14 @@ class InverseNarxModel:
             raise ValueError("u is constant; the model cannot be identified from it")
         if np.ptp(y) == 0.0:
             raise ValueError("y is constant; the model cannot be identified from it")
-        self.narx_ = NarxModel(self.regressor, input_lags=self.output_lags,
+        self._memory_poles()
+        lags = self.output_lags
+        if self.memory_taus_s:
+            lags = [self.output_lags] + [0] * len(self.memory_taus_s)
+        self.narx_ = NarxModel(self.regressor, input_lags=lags,
                                output_lags=self.input_lags, lag_step=self.lag_step,
                                standardize=self.standardize, max_rows=self.max_rows)
-        self.narx_.fit(y, u)
+        self.narx_.fit(self._channels(y), u)
         return self
 
     @property
@@ -400,12 +439,12 @@ class InverseNarxModel:
     def predict(self, y, u) -> np.ndarray:
         """One-step inverse: voltage (V) from displacement ``y`` and the measured past ``u``."""
         check_fitted(self, "narx_")
-        return self.narx_.predict(y, u)
+        return self.narx_.predict(self._channels(as_signal("y", y)), u)
 
     def simulate(self, y_desired, u_init=None) -> np.ndarray:
         """Free-run compensator: voltages (V) for a desired trajectory (mm), from rest."""
         check_fitted(self, "narx_")
-        return self.narx_.simulate(y_desired, u_init)
+        return self.narx_.simulate(self._channels(as_signal("y_desired", y_desired)), u_init)
 
     def stepper(self, y_history=None, u_history=None) -> InverseStepper:
         """Sample-by-sample compensator for a control loop; see :class:`InverseStepper`."""
@@ -418,6 +457,8 @@ class InverseNarxModel:
             "input_lags": self.input_lags,
             "lag_step": self.lag_step,
             "standardize": self.standardize,
+            "memory_taus_s": list(self.memory_taus_s),
+            "dt_s": self.dt_s,
         }
 
 
@@ -431,15 +472,29 @@ class InverseStepper:
     """
 
     def __init__(self, model: InverseNarxModel, y_history=None, u_history=None):
-        self._inner = NarxStepper(model.narx_, y_history, u_history)
+        self._model = model
+        self._a = model._memory_poles()
+        self._mem = np.zeros(self._a.size)
+        self._inner = NarxStepper(model.narx_)
+        self.reset(y_history, u_history)
 
     def reset(self, y_history=None, u_history=None) -> None:
         """Reload the history (oldest first; mm and V); missing past is 0 mm / 0 V."""
-        self._inner.reset(y_history, u_history)
+        if y_history is None or not self._a.size:
+            self._mem[:] = 0.0
+            self._inner.reset(y_history, u_history)
+            return
+        channels = self._model._channels(as_signal("y_history", y_history))
+        self._mem[:] = channels[-1, 1:]
+        self._inner.reset(channels, u_history)
 
     def step(self, y_desired_mm: float) -> float:
         """Desired displacement y_k (mm) -> feedforward voltage u_k (V)."""
-        return self._inner.step(y_desired_mm)
+        if not self._a.size:
+            return self._inner.step(y_desired_mm)
+        y = float(y_desired_mm)
+        self._mem = self._a * self._mem + (1.0 - self._a) * y
+        return self._inner.step(np.concatenate(([y], self._mem)))
 
     def record_applied(self, u_applied_v: float) -> None:
         """Replace the last returned voltage in the history by the applied one (V)."""

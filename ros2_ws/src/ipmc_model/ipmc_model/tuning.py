@@ -184,6 +184,8 @@ def tune_lssvm_narx(
     output_lags: int = 3,
     lag_step=1,
     inverse: bool = False,
+    memory_taus_s=(),
+    dt_s: float = 0.01,
     objective: str = "free_run",
     val_fraction: float = 0.3,
     n_sources: int = DEFAULT_SOURCES,
@@ -213,6 +215,8 @@ def tune_lssvm_narx(
         ABC per spacing and keeps the best (``TuningResult.lag_step``).
     inverse : bool
         Tune the inverse model (scored on the voltage it predicts, V).
+    memory_taus_s : sequence of float, dt_s : float
+        Memory channels of the inverse model (time constants and sample period, s).
     objective : {"free_run", "one_step"}
         Validation RMSE of the free-run simulation (default) or of the one-step prediction.
     val_fraction : float
@@ -264,12 +268,13 @@ def tune_lssvm_narx(
                   for lo, hi in zip(edges[:-1], edges[1:], strict=True)]
     score = _OBJECTIVE_FUNCS[objective]
     # the inverse model maps y -> u: it is scored on the voltage it predicts
-    x_all, t_all = (y, u) if inverse else (u, y)
+    memory = {"memory_taus_s": tuple(memory_taus_s), "dt_s": dt_s}
+    x_all, t_all = (InverseNarxModel(**memory)._channels(y), u) if inverse else (u, y)
 
     def skeleton(reg, step):
         if inverse:
             return InverseNarxModel(reg, output_lags=output_lags, input_lags=input_lags,
-                                    lag_step=step).fit(u, y).narx_
+                                    lag_step=step, **memory).fit(u, y).narx_
         return NarxModel(reg, input_lags=input_lags, output_lags=output_lags,
                          lag_step=step).fit(u, y)
 
@@ -348,6 +353,8 @@ def identify_lssvm_narx(
     output_lags: int = 3,
     lag_step=1,
     inverse: bool = False,
+    memory_taus_s=(),
+    dt_s: float = 0.01,
     max_exact: int = DEFAULT_MAX_EXACT,
     n_prototypes: int = 1000,
     seed: int | None = 0,
@@ -360,7 +367,9 @@ def identify_lssvm_narx(
     are tuned by :func:`tune_lssvm_narx` (``tune_kwargs`` go there) with the same regressor
     rule as the final fit. The final model is fitted on the whole record: exact LSSVM up to
     ``max_exact`` rows, fixed-size with ``n_prototypes`` above; at most ``max_train_rows``
-    rows (evenly spaced) if that cap was given to the tuning.
+    rows (evenly spaced) if that cap was given to the tuning. ``memory_taus_s`` (s) and
+    ``dt_s`` (the record's sample period, s) give an inverse model memory channels (see
+    :class:`~ipmc_model.narx.InverseNarxModel`).
 
     Returns
     -------
@@ -371,6 +380,7 @@ def identify_lssvm_narx(
     if C is None or sigma is None:
         tuning = tune_lssvm_narx(u, y, input_lags=input_lags, output_lags=output_lags,
                                  lag_step=lag_step, inverse=inverse, seed=seed,
+                                 memory_taus_s=memory_taus_s, dt_s=dt_s,
                                  max_exact=max_exact, n_prototypes=n_prototypes, **tune_kwargs)
         C, sigma, lag_step = tuning.C, tuning.sigma, tuning.lag_step
     else:
@@ -385,7 +395,8 @@ def identify_lssvm_narx(
                      seed=seed)
     if inverse:
         model = InverseNarxModel(reg, output_lags=output_lags, input_lags=input_lags,
-                                 lag_step=lag_step, max_rows=max_rows).fit(u, y)
+                                 lag_step=lag_step, max_rows=max_rows,
+                                 memory_taus_s=memory_taus_s, dt_s=dt_s).fit(u, y)
     else:
         model = NarxModel(reg, input_lags=input_lags, output_lags=output_lags,
                           lag_step=lag_step, max_rows=max_rows).fit(u, y)

@@ -123,3 +123,30 @@ def test_identify_defaults_search_lag_step_with_folds(tmp_path, csvs, capsys):
     rc = identify_main(["--data", str(train), "--model", "lssvm-narx", "--tune", "none",
                         "--out", str(model)])
     assert rc == 0 and load_model(model).lag_step == 1
+
+
+def test_identify_inverse_memory_taus(tmp_path, csvs, capsys):
+    train, _ = csvs
+    base = ["--data", str(train), "--model", "lssvm-narx", "--inverse", "--tune", "none",
+            "--C", "100", "--sigma", "2"]
+    rc = identify_main(base + ["--memory-taus", "0.5,2", "--out", str(tmp_path / "inv")])
+    assert rc == 0
+    inv = load_model(tmp_path / "inv.json")
+    assert inv.memory_taus_s == (0.5, 2.0)
+    assert inv.dt_s == pytest.approx(0.01)  # from the record's rate
+    assert np.isfinite(inv.stepper().step(0.5))
+    # Tuning sees the same channels as the final fit.
+    rc = identify_main(["--data", str(train), "--model", "lssvm-narx", "--inverse",
+                        "--budget", "3x2", "--folds", "1", "--lag-step", "2",
+                        "--memory-taus", "1", "--out", str(tmp_path / "tuned")])
+    assert rc == 0
+    assert load_model(tmp_path / "tuned.json").memory_taus_s == (1.0,)
+    for bad in ("0", "-1", "x", ""):
+        with pytest.raises(SystemExit):
+            identify_main(base + ["--memory-taus", bad, "--out", str(tmp_path / "bad")])
+    capsys.readouterr()
+    rc = identify_main(["--data", str(train), "--model", "lssvm-narx", "--tune", "none",
+                        "--C", "100", "--sigma", "2", "--memory-taus", "1",
+                        "--out", str(tmp_path / "fwd")])
+    assert rc == 1
+    assert "--inverse" in capsys.readouterr().err

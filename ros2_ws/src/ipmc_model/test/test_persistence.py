@@ -20,10 +20,12 @@ def models(hyst_data):
         "narx-fs": NarxModel(FixedSizeLSSVMRegressor(C=100.0, sigma=2.0, n_prototypes=50))
         .fit(u, y),
         "inverse": InverseNarxModel(LSSVMRegressor(C=100.0, sigma=2.0)).fit(u, y),
+        "inverse-memory": InverseNarxModel(LSSVMRegressor(C=100.0, sigma=2.0), input_lags=0,
+                                           memory_taus_s=[0.5, 3.0], dt_s=0.02).fit(u, y),
     }
 
 
-@pytest.mark.parametrize("name", ["pi", "narx", "narx-fs", "inverse"])
+@pytest.mark.parametrize("name", ["pi", "narx", "narx-fs", "inverse", "inverse-memory"])
 def test_save_load_round_trip(tmp_path, hyst_data, models, name):
     u, y = hyst_data
     model = models[name]
@@ -34,7 +36,8 @@ def test_save_load_round_trip(tmp_path, hyst_data, models, name):
     assert loaded.metadata_ == {"note": "test"}
     if name == "pi":
         assert_allclose(loaded.simulate(u[500:]), model.simulate(u[500:]))
-    elif name == "inverse":
+    elif name.startswith("inverse"):
+        assert loaded.get_params() == model.get_params()
         assert_allclose(loaded.simulate(y[500:600]), model.simulate(y[500:600]))
     else:
         assert_allclose(loaded.simulate(u[500:600]), model.simulate(u[500:600]))
@@ -96,3 +99,16 @@ def test_model_file_error_is_value_error():
 def test_save_unfitted_raises(tmp_path):
     with pytest.raises(NotFittedError):
         save_model(NarxModel(), tmp_path / "m.json")
+
+
+def test_inverse_file_without_memory_keys_loads(tmp_path, hyst_data, models):
+    # Files written before memory channels existed have no memory_taus_s / dt_s.
+    u, y = hyst_data
+    path = save_model(models["inverse"], tmp_path / "old")
+    doc = json.loads(path.read_text())
+    for key in ("memory_taus_s", "dt_s"):
+        del doc["model"]["params"][key]
+    path.write_text(json.dumps(doc))
+    loaded = load_model(path)
+    assert loaded.memory_taus_s == ()
+    assert_allclose(loaded.simulate(y[500:600]), models["inverse"].simulate(y[500:600]))
