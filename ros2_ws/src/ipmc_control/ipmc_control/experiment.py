@@ -86,7 +86,8 @@ def tracking_summary(t_s, reference_mm, y_mm, u_v) -> dict:
 
 
 def run_tracking(reference: Reference, duration_s: float, mode: str, *, inverse=None,
-                 plant=None, pid: PID | None = None, rate_hz: float = 100.0) -> TrackResult:
+                 plant=None, pid: PID | None = None, rate_hz: float = 100.0,
+                 use_reference_rate: bool = True) -> TrackResult:
     """Run the closed (or open) loop on ``plant`` for ``duration_s``.
 
     Parameters
@@ -100,6 +101,9 @@ def run_tracking(reference: Reference, duration_s: float, mode: str, *, inverse=
         Default: a fresh ``ipmc_driver.plant.IpmcPlant`` at ``rate_hz``.
     pid : PID, optional
         Default: the paper's gains K=1.2, TI=0.87 s, TD=0.13 s, |u| <= 3 V.
+    use_reference_rate : bool
+        Give the PID the reference's rate, so its derivative acts on the error (Eq. 21) as the
+        controller node does by default; False: derivative on the measurement alone.
     """
     mode = check_mode(mode)
     if mode != "pid" and inverse is None:
@@ -112,6 +116,7 @@ def run_tracking(reference: Reference, duration_s: float, mode: str, *, inverse=
     n = int(round(duration_s * rate_hz))
     t = np.arange(n) * dt
     r = np.asarray(reference(t), dtype=float)
+    r_rate = np.asarray(reference.rate(t), dtype=float) if use_reference_rate else None
     ctrl = HybridController(pid or PID(), mode=mode)
     ff_stepper = inverse.stepper() if mode != "pid" else None
     y = np.empty(n)
@@ -122,7 +127,8 @@ def run_tracking(reference: Reference, duration_s: float, mode: str, *, inverse=
         if ff_stepper is not None:
             ff[k] = max(-3.0, min(3.0, ff_stepper.step(r[k])))
             ff_stepper.record_applied(ff[k])  # the voltage history holds what can be applied
-        cmd = ctrl.compute_command(r[k], y_last, dt, ff[k] if ff_stepper is not None else None)
+        cmd = ctrl.compute_command(r[k], y_last, dt, ff[k] if ff_stepper is not None else None,
+                                   None if r_rate is None else r_rate[k])
         u[k], y[k] = plant.step(cmd)
         y_last = y[k]
     return TrackResult(t_s=t, reference_mm=r, y_mm=y, u_v=u, feedforward_v=ff)

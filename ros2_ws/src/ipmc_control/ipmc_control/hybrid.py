@@ -93,7 +93,8 @@ class HybridController:
         self.active_mode = self._mode
 
     def compute_command(self, reference_mm: float, measurement_mm: float, dt_s: float,
-                        feedforward_v: float | None = None) -> float:
+                        feedforward_v: float | None = None,
+                        reference_rate_mm_s: float | None = None) -> float:
         """Advance one sample and return the command, V (clipped, never NaN).
 
         Parameters
@@ -107,6 +108,9 @@ class HybridController:
             previous command without changing the state, as :meth:`PID.compute_command`.
         feedforward_v : float or None
             Inverse-model voltage for ``reference_mm``, V; None or NaN when unavailable.
+        reference_rate_mm_s : float or None
+            Rate of a smooth reference, mm/s: the derivative acts on the error (paper Eq. 21);
+            None: on the measurement (see :meth:`PID.compute_command`).
 
         Returns
         -------
@@ -115,6 +119,9 @@ class HybridController:
         """
         ff_ok = feedforward_v is not None and math.isfinite(feedforward_v)
         mode = self._mode if (ff_ok or self._mode == "pid") else "pid"
+        rate = reference_rate_mm_s
+        if rate is not None and not math.isfinite(rate):
+            rate = None  # an unknown rate must not stop the loop: derivative on measurement
         if not (dt_s > 0.0 and math.isfinite(dt_s)
                 and math.isfinite(reference_mm) and math.isfinite(measurement_mm)):
             # Let the PID reject and count the step; nothing else changes.
@@ -124,9 +131,10 @@ class HybridController:
         self._transfer(use_ff, ff)
         if mode == "inverse":
             u = self.pid.compute_command(reference_mm, measurement_mm, dt_s, feedforward=ff,
-                                         u_applied=ff)
+                                         u_applied=ff, reference_rate=rate)
         else:
-            u = self.pid.compute_command(reference_mm, measurement_mm, dt_s, feedforward=ff)
+            u = self.pid.compute_command(reference_mm, measurement_mm, dt_s, feedforward=ff,
+                                         reference_rate=rate)
         self.active_mode = mode
         self.feedforward_v = ff
         return u

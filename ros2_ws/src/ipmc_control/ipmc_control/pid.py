@@ -8,7 +8,10 @@ with K = 1.2 V/mm, TI = 0.87 s, TD = 0.13 s. This module discretises it as Astro
 Hagglund, *Advanced PID Control* (2006), ch. 3 and 13, do for a practical controller:
 
 - derivative on the measurement (no derivative kick when the reference steps), low-pass
-  filtered with time constant ``TD / N`` (backward difference, stable for any ``dt``);
+  filtered with time constant ``TD / N`` (backward difference, stable for any ``dt``); when the
+  caller knows the rate of a smooth reference (``reference_rate``) it is added, so the
+  derivative acts on the error as Eq. 21 writes it, still without a kick on steps (a step
+  train's rate is 0);
 - integral by forward Euler, stored in volts, so a change of TI alone leaves the output alone;
 - output limit ``u_clamp_min <= u <= u_clamp_max`` (the H-bridge's 3 V);
 - back-calculation anti-windup with tracking time constant ``Tt`` (default ``sqrt(TI * TD)``,
@@ -349,7 +352,8 @@ class PID:
 
     # -- the step -------------------------------------------------------------------------------
     def compute_command(self, reference: float, measurement: float, dt_s: float,
-                        feedforward: float = 0.0, u_applied: float | None = None) -> float:
+                        feedforward: float = 0.0, u_applied: float | None = None,
+                        reference_rate: float | None = None) -> float:
         """Advance one sample and return the saturated command, V.
 
         Parameters
@@ -370,6 +374,12 @@ class PID:
             to it with time constant Tt and closing the loop later does not bump (with
             ``antiwindup_strategy="none"`` the integrator is frozen instead). It is clipped to
             the limits and returned.
+        reference_rate : float, optional
+            dr/dt of a smooth reference, mm/s (e.g. ``Reference.rate``). The derivative then
+            acts on the error, ``TD d(r - y)/dt`` as in the paper's Eq. 21, through the same
+            filter, with r's rate given rather than differenced: a tracked trajectory does not
+            see ``-K TD dy/dt`` fight the feedforward, and a step (rate 0 on both sides) still
+            gives no kick. None (default): derivative on the measurement alone.
 
         Returns
         -------
@@ -379,7 +389,8 @@ class PID:
         h = dt_s
         if not (h > 0.0 and math.isfinite(h) and math.isfinite(reference)
                 and math.isfinite(measurement) and math.isfinite(feedforward)
-                and (u_applied is None or math.isfinite(u_applied))):
+                and (u_applied is None or math.isfinite(u_applied))
+                and (reference_rate is None or math.isfinite(reference_rate))):
             self.rejected_steps += 1
             return self._u
         e = reference - measurement
@@ -388,7 +399,10 @@ class PID:
             d = 0.0
         else:
             tf = self._td / self._n
-            d = (tf * self._d - self._k * self._td * (measurement - self._y_prev)) / (tf + h)
+            change = measurement - self._y_prev
+            if reference_rate is not None:
+                change -= reference_rate * h
+            d = (tf * self._d - self._k * self._td * change) / (tf + h)
         v = feedforward + p + self._i + d
         u = v if u_applied is None else u_applied
         u = self._u_max if u > self._u_max else (self._u_min if u < self._u_min else u)

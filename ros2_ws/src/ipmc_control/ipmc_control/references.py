@@ -54,6 +54,21 @@ class Reference:
     def _eval(self, t: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
         raise NotImplementedError
 
+    def rate(self, t_s):
+        """Rate of change of the desired displacement at time(s) ``t_s`` (s), mm/s.
+
+        Analytic where the reference is smooth; 0 on the flat parts of a step train (so a PID
+        fed this rate has no derivative kick when the reference steps). The base class
+        differentiates numerically (central difference over 1 ms).
+        """
+        if np.ndim(t_s) == 0:
+            return float(self._rate(np.array([float(t_s)]))[0])
+        return self._rate(np.asarray(t_s, dtype=float))
+
+    def _rate(self, t: np.ndarray) -> np.ndarray:
+        h = 0.5e-3
+        return (self._eval(t + h) - self._eval(t - h)) / (2.0 * h)
+
     def sample(self, duration_s: float, rate_hz: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
         """Sample on a uniform grid.
 
@@ -89,6 +104,9 @@ class ConstantReference(Reference):
     def _eval(self, t: np.ndarray) -> np.ndarray:
         return np.full(t.shape, self.value_mm)
 
+    def _rate(self, t: np.ndarray) -> np.ndarray:
+        return np.zeros(t.shape)
+
 
 class SineReference(Reference):
     """``offset_mm + amplitude_mm * sin(2 pi frequency_hz t + phase_rad)``, mm.
@@ -118,6 +136,9 @@ class SineReference(Reference):
 
     def _eval(self, t: np.ndarray) -> np.ndarray:
         return self.offset_mm + self.amplitude_mm * np.sin(self._w * t + self.phase_rad)
+
+    def _rate(self, t: np.ndarray) -> np.ndarray:
+        return self.amplitude_mm * self._w * np.cos(self._w * t + self.phase_rad)
 
 
 class RandomSineReference(Reference):
@@ -203,6 +224,15 @@ class RandomSineReference(Reference):
     def _eval(self, t: np.ndarray) -> np.ndarray:
         return np.clip(self._shift + self._scale * self._raw(t), *self.range_mm)
 
+    def _rate(self, t: np.ndarray) -> np.ndarray:
+        flat = t.reshape(-1)
+        out = np.zeros(flat.shape)
+        for w, a, p in zip(self._w, self.amplitudes_, self.phases_rad_, strict=True):
+            out += a * w * np.cos(w * flat + p)
+        y = self._shift + self._scale * self._raw(flat)
+        inside = (y > self.range_mm[0]) & (y < self.range_mm[1])  # clipped: flat
+        return np.where(inside, self._scale * out, 0.0).reshape(t.shape)
+
 
 class StepTrainReference(Reference):
     """Levels held in turn: ``levels_mm[j]`` for ``j * hold_s <= t < (j + 1) * hold_s``.
@@ -238,6 +268,9 @@ class StepTrainReference(Reference):
 
     def _eval(self, t: np.ndarray) -> np.ndarray:
         return self.levels_mm[self._index(t)]
+
+    def _rate(self, t: np.ndarray) -> np.ndarray:
+        return np.zeros(t.shape)  # flat between the steps; the steps themselves are not rates
 
 
 class FileReference(Reference):

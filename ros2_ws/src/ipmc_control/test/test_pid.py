@@ -101,6 +101,39 @@ def test_derivative_on_measurement_follows_ramp_after_filter():
     assert_allclose(pid.d_term, -K * TD * slope, rtol=1e-9)
 
 
+def test_reference_rate_puts_derivative_on_error():
+    slope = 0.5  # mm/s; a ramp tracked with a constant lag: the error does not change
+    on_error = PID(ti_s=math.inf, u_clamp_max=math.inf, u_clamp_min=-math.inf)
+    on_measurement = PID(ti_s=math.inf, u_clamp_max=math.inf, u_clamp_min=-math.inf)
+    for k in range(200):
+        r, y = slope * k * H, slope * k * H - 0.1
+        on_error.compute_command(r, y, H, reference_rate=slope)
+        on_measurement.compute_command(r, y, H)
+    assert abs(on_error.d_term) < 1e-12  # d(r - y)/dt = 0
+    assert_allclose(on_measurement.d_term, -K * TD * slope, rtol=1e-9)
+    # The error's rate is what counts: the measurement stops, r keeps going.
+    for _ in range(200):
+        on_error.compute_command(1.0, 0.5, H, reference_rate=slope)
+    assert_allclose(on_error.d_term, K * TD * slope, rtol=1e-9)
+
+
+def test_reference_rate_zero_on_a_step_gives_no_kick():
+    pid = PID(u_clamp_max=math.inf, u_clamp_min=-math.inf)
+    for _ in range(50):
+        pid.compute_command(0.0, 0.0, H, reference_rate=0.0)
+    u_before = pid.command
+    u_after = pid.compute_command(2.0, 0.0, H, reference_rate=0.0)  # a step train's rate
+    assert pid.d_term == 0.0
+    assert_allclose(u_after - u_before, K * 2.0, rtol=1e-12)
+
+
+def test_nan_reference_rate_is_a_rejected_sample():
+    pid = PID()
+    u = pid.compute_command(1.0, 0.0, H)
+    assert pid.compute_command(1.0, 0.0, H, reference_rate=math.nan) == u
+    assert pid.rejected_steps == 1
+
+
 def _saturating_loop(strategy: str, reachable_mm: float = 2.0):
     """First-order plant (gain 2 mm/V, tau 0.5 s) behind the 3 V limit: 5 s asking for the
     unreachable 10 mm, then ``reachable_mm``. Returns the PID, the peak |I| during saturation

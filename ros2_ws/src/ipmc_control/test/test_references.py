@@ -155,3 +155,26 @@ def test_make_reference_builds_each_kind(tmp_path):
         make_reference("ramp")
     with pytest.raises(ControlParameterError, match="bad parameters for a sine"):
         make_reference("sine", amplitude=1.0)
+
+
+@pytest.mark.parametrize("ref", [
+    SineReference(1.5, 0.3, offset_mm=1.0, phase_rad=0.4), RandomSineReference(seed=3),
+    RandomSineReference(band_hz=(0.0, 0.7), range_mm=(-4.0, 2.0), seed=0),
+])
+def test_rate_is_the_derivative(ref):
+    t = np.linspace(0.0, 60.0, 6001)
+    numeric = np.gradient(ref(t), t)
+    inner = slice(1, -1)
+    assert_allclose(ref.rate(t)[inner], numeric[inner], atol=2e-3 * np.ptp(numeric))
+    assert isinstance(ref.rate(1.5), float)
+    assert_allclose(ref.rate(1.5), ref.rate(np.array([1.5]))[0], rtol=1e-12)
+
+
+def test_rate_of_flat_references_is_zero(tmp_path):
+    t = np.linspace(-1.0, 30.0, 3101)  # across every step of the train
+    assert np.all(StepTrainReference().rate(t) == 0.0)
+    assert np.all(ConstantReference(2.0).rate(t) == 0.0)
+    f = tmp_path / "ramp.csv"
+    f.write_text("t,y\n0,0\n1,2\n2,2\n")
+    ref = FileReference(f)
+    assert_allclose(ref.rate(np.array([0.5, 1.5])), [2.0, 0.0], atol=1e-9)

@@ -1,8 +1,8 @@
 """controller: the hybrid inverse-feedforward + PID loop of the paper (section 4) on the graph.
 
-Subscribes ``/ipmc/reference`` (PointStamped, x in m), ``/ipmc/displacement`` (PointStamped,
-x in m) and ``/ipmc/feedforward`` (Vector3Stamped, x in V); publishes ``/ipmc/command``
-(std_msgs/Float64, V, |u| <= 3 V) and ``/diagnostics``.
+Subscribes ``/ipmc/reference`` (PointStamped, x in m, y its rate in m/s),
+``/ipmc/displacement`` (PointStamped, x in m) and ``/ipmc/feedforward`` (Vector3Stamped, x in
+V); publishes ``/ipmc/command`` (std_msgs/Float64, V, |u| <= 3 V) and ``/diagnostics``.
 
 - ``trigger:=timer`` (default): one command every ``1/rate_hz`` s of the node's clock (ROS time,
   so with ``use_sim_time:=true`` it follows ``/clock`` of ``sim_plant`` in lock-step mode);
@@ -12,6 +12,10 @@ x in m) and ``/ipmc/feedforward`` (Vector3Stamped, x in V); publishes ``/ipmc/co
   ``sqrt(TI TD)``), the limits ``u_clamp_max``/``u_clamp_min`` (V) and ``mode`` (pid | inverse
   | hybrid) can be changed at run time; invalid values are refused with the reason. Gain changes
   are bumpless.
+- ``use_reference_rate`` (default true): the PID's derivative acts on the error, with the
+  reference's rate taken from ``point.y`` of ``/ipmc/reference`` (the paper's Eq. 21; the
+  ``reference`` node fills it in; a publisher that leaves it 0 gets derivative on the
+  measurement). false: derivative on the measurement alone.
 - The feedforward is stale when older than ``feedforward_timeout_s`` on the node's clock: the
   loop then runs PID alone (bumplessly), says so on ``/diagnostics`` and in the log, and returns
   to the requested mode when feedforward messages come back.
@@ -95,6 +99,9 @@ class Controller(Node):
         self.declare_parameter("u_clamp_min", -3.0, d(description="lower command limit, V"))
         self.declare_parameter("antiwindup_strategy", "back_calculation", d(
             description="back_calculation | none", read_only=True))
+        self.declare_parameter("use_reference_rate", True, d(
+            description="derivative on the error using the reference's rate (point.y of "
+                        "/ipmc/reference, m/s); false: derivative on the measurement"))
         self.declare_parameter("feedforward_timeout_s", 0.2, d(
             description="feedforward older than this (node clock) -> PID alone, s"))
         self.declare_parameter("measurement_timeout_s", 0.5, d(
@@ -123,13 +130,17 @@ class Controller(Node):
         self.hybrid = HybridController(pid, mode=check_mode(g("mode").value))
         self.ff_timeout_s = float(g("feedforward_timeout_s").value)
         self.y_timeout_s = float(g("measurement_timeout_s").value)
+        self.use_reference_rate = bool(g("use_reference_rate").value)
         self._sim_time = bool(g("use_sim_time").value)
 
         # Latest inputs (mm, V) and their receive times on the node clock (s).
         self._ref_mm: float | None = None
+        self._ref_rate: dict[int, float] = {}  # reference stamp -> its rate, mm/s
+        self._ref_rate_last = 0.0
         self._first_ref_ns: int | None = None   # a step aiming before it has no reference
         self._recent_refs: OrderedDict[int, float] = OrderedDict()
         self._ff_ref_mm: float | None = None  # the reference the last feedforward answers
+        self._ff_ref_rate: float | None = None  # and its rate, mm/s
         self._recent_ffs: OrderedDict[int, float] = OrderedDict()
         self._y_mm: float | None = None
         self._y_rx_s = -math.inf
@@ -177,6 +188,8 @@ class Controller(Node):
         try:
             if "mode" in new:
                 check_mode(new["mode"])
+            if "use_reference_rate" in new and not isinstance(new["use_reference_rate"], bool):
+                raise ControlParameterError("use_reference_rate must be true or false")
             for name in ("feedforward_timeout_s", "measurement_timeout_s"):
                 if name in new and not (isinstance(new[name], float) and new[name] > 0):
                     raise ControlParameterError(f"{name} must be > 0 s, got {new[name]!r}")
@@ -207,6 +220,7 @@ class Controller(Node):
             self.get_logger().info(f"mode: {self.hybrid.mode}")
         self.ff_timeout_s = float(g("feedforward_timeout_s").value)
         self.y_timeout_s = float(g("measurement_timeout_s").value)
+        self.use_reference_rate = bool(g("use_reference_rate").value)
         self._sim_time = bool(g("use_sim_time").value)
 
     # -- inputs ---------------------------------------------------------------------------------
@@ -219,15 +233,18 @@ class Controller(Node):
             if self._first_ref_ns is None:
                 self._first_ref_ns = _stamp_ns(msg)
             self._maybe_run_pending()
+            self._ref_rate_last = msg.point.y * 1e3 if math.isfinite(msg.point.y) else 0.0
             self._recent_refs[_stamp_ns(msg)] = self._ref_mm
+            self._ref_rate[_stamp_ns(msg)] = self._ref_rate_last
             if len(self._recent_refs) > REFERENCE_MEMORY:
-                self._recent_refs.popitem(last=False)
+                self._ref_rate.pop(self._recent_refs.popitem(last=False)[0], None)
 
     def _on_feedforward(self, msg: Vector3Stamped) -> None:
         if math.isfinite(msg.vector.x):
             self._ff_v = float(msg.vector.x)
             self._ff_rx_s = self._now_s()
             self._ff_ref_mm = self._recent_refs.get(_stamp_ns(msg))
+            self._ff_ref_rate = self._ref_rate.get(_stamp_ns(msg))
             self._recent_ffs[_stamp_ns(msg)] = self._ff_v
             if len(self._recent_ffs) > REFERENCE_MEMORY:
                 self._recent_ffs.popitem(last=False)
@@ -306,15 +323,20 @@ class Controller(Node):
             return
         self._idle_reason = ""
         ref_mm = self._ref_mm
+        rate = self._ref_rate_last
         ff_v = self._ff_v if ff_fresh else None
         if ff_fresh and mode != "pid" and self._ff_ref_mm is not None:
             ref_mm = self._ff_ref_mm
+            if self._ff_ref_rate is not None:
+                rate = self._ff_ref_rate
         if target_ns is not None and target_ns in self._recent_refs:
             ref_mm = self._recent_refs[target_ns]
+            rate = self._ref_rate.get(target_ns, rate)
             if ff_fresh and target_ns in self._recent_ffs:
                 ff_v = self._recent_ffs[target_ns]
         y_mm = self._y_mm if self._y_mm is not None else ref_mm
-        u = self.hybrid.compute_command(ref_mm, y_mm, dt, ff_v)
+        u = self.hybrid.compute_command(ref_mm, y_mm, dt, ff_v,
+                                        rate if self.use_reference_rate else None)
         self.pub_command.publish(Float64(data=u))
         self.step_us.append((time.perf_counter() - wall) * 1e6)
         self._saturated.append(self.hybrid.saturated)

@@ -1,6 +1,8 @@
 """reference: publishes the desired tip displacement on ``/ipmc/reference``.
 
-``/ipmc/reference`` is a PointStamped, ``point.x`` in metres (frame ``ipmc_clamp``), published
+``/ipmc/reference`` is a PointStamped, ``point.x`` in metres and ``point.y`` its rate of change in
+m/s (analytic for the smooth generators, 0 on a step train's levels; the controller's
+derivative acts on the error with it) (frame ``ipmc_clamp``), published
 every ``1/rate_hz`` s of the node's clock (ROS time: with ``use_sim_time:=true`` it follows
 ``/clock``). The generator (``ipmc_control.references``) is chosen by ``kind``:
 
@@ -150,7 +152,9 @@ class ReferenceNode(Node):
             stamp_ns = self._t0_ns + k * self._period_ns
             msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
             msg.header.frame_id = self.frame_id
-            msg.point.x = self.generator(k * self._period_ns * 1e-9) * 1e-3
+            t_s = k * self._period_ns * 1e-9
+            msg.point.x = self.generator(t_s) * 1e-3
+            msg.point.y = self.generator.rate(t_s) * 1e-3
             self.pub.publish(msg)
         self._next_k = max(self._next_k, last_k + 1)
 
