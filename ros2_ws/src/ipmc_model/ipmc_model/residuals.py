@@ -422,6 +422,9 @@ class ResidualMonitor:
         else:
             self._status = replace(self._status, samples=self._n_raw,
                                    reference_samples=len(self._ref))
+            if self.test == "drift" and len(self._ref) < self.reference:
+                self._status.message = (f"measuring the reference residual ({len(self._ref)}/"
+                                        f"{self.reference} samples)")
         return self._status
 
     def update_many(self, e) -> MonitorStatus:
