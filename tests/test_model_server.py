@@ -200,6 +200,11 @@ def test_serves_feedforward_prediction_residual_and_reload(
         assert "forward.json" in _value(probe.latest("model"), "model_file")
         assert float(_value(probe.latest("feedforward"), "rate_hz")) >= 0.0
         assert float(_value(probe.latest("residual"), "free_run_rms_mm")) < 0.35 * sd_y
+        # the default staleness monitor: drift test on the free-run residual, still measuring
+        # its reference (120 s at 100 Hz) after 12 s, and OK meanwhile
+        residual = probe.latest("residual")
+        assert _value(residual, "monitor_test") == "drift", residual.message
+        assert residual.level == b"\x00" and "reference residual" in residual.message
 
         # (4) Reload: a good file succeeds; a corrupt one keeps the old model and says why.
         assert probe.reload.wait_for_service(timeout_sec=5.0)

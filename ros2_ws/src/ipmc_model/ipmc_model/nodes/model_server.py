@@ -17,8 +17,13 @@ either may be empty, and what needs a missing model is simply not published.
 - ``~/reload`` (std_srvs/Trigger): reload the model file(s). All or nothing: a bad file keeps the
   models in use, and the response (success false) and the log say why.
 - ``/diagnostics`` (wall clock, every ``diagnostics_period_s``): model (loaded, kind, files),
-  feedforward (rate, clamping), residual (whiteness from ``ipmc_model.residuals.ResidualMonitor``
-  fed the one-step residual by default, ``monitor_residual``; RMS of both residuals).
+  feedforward (rate, clamping), residual: the staleness monitor
+  (``ipmc_model.residuals.ResidualMonitor``). By default it is fed the free-run residual and runs
+  the drift test: the first ``monitor_reference`` samples after a (re)load are the residual of
+  the freshly fitted model; the status turns WARN "model stale: ..." (with the statistic and its
+  threshold) when the window's mean moves more than ``monitor_bias_factor`` reference spreads
+  for ``monitor_patience`` checks in a row (drift, dehydration). ``monitor_residual:=one_step``
+  gives the former Ljung-Box whiteness test on the one-step residual (``monitor_test:=auto``).
 
 Each message costs one kernel row per model (two for a voltage: free-run and one-step); the
 node keeps no timers on the ROS clock, so it runs as well under ``use_sim_time:=true`` with
@@ -58,6 +63,11 @@ HARDWARE_ID = "ipmc"
 U_LIMIT_V = 3.0  # the actuators' safe limit (paper section 2.1); u_max_v may only be lower
 HISTORY_VOLTAGES = ("applied", "clamped", "model")
 MONITOR_RESIDUALS = ("one_step", "free_run")
+MONITOR_TESTS = ("auto", "drift", "whiteness", "both")
+# monitor_test auto: the test that works on each residual (docs/diagnose.md, "Online monitor").
+AUTO_TEST = {"free_run": "drift", "one_step": "whiteness"}
+# monitor_window 0: measured per test, samples after decimation (10 Hz at the defaults).
+AUTO_WINDOW = {"drift": 600, "both": 600, "whiteness": 300}
 # Unpaired predictions / measurements kept while waiting for their partner (stamps).
 PAIR_MEMORY = 256
 # Samples of history handed to new steppers after a reload (more than any sane lag depth).
@@ -134,18 +144,40 @@ class ModelServer(Node):
         self.declare_parameter("history_voltage", "applied", d(
             description="voltage history of the inverse model: applied (latest /ipmc/voltage) "
                         "| clamped (own output, limited) | model (own output)"))
-        self.declare_parameter("monitor_residual", "one_step", d(
-            description="residual fed to the whiteness monitor: one_step | free_run",
+        # The staleness monitor (all read-only: it is built once; a reload restarts it).
+        self.declare_parameter("monitor_residual", "free_run", d(
+            description="residual fed to the staleness monitor: free_run (measured - free-run "
+                        "prediction, default) | one_step (measured - one-step prediction)",
             read_only=True))
-        # Window and decimation measured on the simulated plant: at decimate 1 (and 5) even a
-        # clean plant's one-step residual failed the Ljung-Box check most of the time; at
-        # 10 x 300 it was flagged stale 2 % of the time (300 s random-sine run).
-        self.declare_parameter("monitor_window", 300, d(
-            description="whiteness monitor window, samples (after decimation)", read_only=True))
+        self.declare_parameter("monitor_test", "auto", d(
+            description="staleness test: drift (window mean/spread against the reference "
+                        "measured after each load) | whiteness (Ljung-Box + bias) | both | "
+                        "auto (drift on free_run, whiteness on one_step)", read_only=True))
+        # Measured on the simulated plant at 100 Hz (docs/diagnose.md, "Online monitor"): the
+        # drift test on the free-run residual flagged a drifting plant 3-10 min after the fit
+        # and no clean one in 30 min; the whiteness test on the one-step residual flagged the
+        # clean plant at decimate 1 and 5 most of the time, at 10 x 300 2 % of the time.
+        self.declare_parameter("monitor_window", 0, d(
+            description="monitor window, samples after decimation (0: 600 for drift/both, "
+                        "300 for whiteness)", read_only=True))
+        self.declare_parameter("monitor_reference", 1200, d(
+            description="drift test: samples after decimation, from each (re)load, that "
+                        "define the normal residual (mean m0, spread s0)", read_only=True))
+        self.declare_parameter("monitor_bias_factor", 1.5, d(
+            description="drift test: a check fails when |window mean - m0| > this x s0",
+            read_only=True))
+        self.declare_parameter("monitor_growth", 0.0, d(
+            description="drift test: a check fails when the window spread > this x s0 "
+                        "(> 1; 0 = off)", read_only=True))
         self.declare_parameter("monitor_lags", 20, d(
-            description="whiteness monitor Ljung-Box lags", read_only=True))
+            description="whiteness test: Ljung-Box lags", read_only=True))
         self.declare_parameter("monitor_decimate", 10, d(
-            description="whiteness monitor keeps every n-th residual sample", read_only=True))
+            description="monitor keeps every n-th residual sample", read_only=True))
+        self.declare_parameter("monitor_check_every", 50, d(
+            description="monitor: samples (after decimation) between checks", read_only=True))
+        self.declare_parameter("monitor_patience", 3, d(
+            description="monitor: failed checks in a row before 'model stale' (WARN)",
+            read_only=True))
         self.declare_parameter("diagnostics_period_s", 1.0, d(
             description="wall-clock period of /diagnostics, s", read_only=True))
         self.add_on_set_parameters_callback(self._validate_parameters)
@@ -159,12 +191,11 @@ class ModelServer(Node):
         self.monitor_residual = g("monitor_residual").value
         problem = self._check(u_max_v=self.u_max_v, history_voltage=self.history_voltage)
         if self.monitor_residual not in MONITOR_RESIDUALS:
-            problem = f"monitor_residual must be one of {MONITOR_RESIDUALS}"
+            problem = (f"monitor_residual must be one of {MONITOR_RESIDUALS}, "
+                       f"got {self.monitor_residual!r}")
         if problem:
             raise ValueError(problem)
-        self.monitor = ResidualMonitor(window=g("monitor_window").value,
-                                       lags=g("monitor_lags").value,
-                                       decimate=g("monitor_decimate").value)
+        self.monitor = self._build_monitor()
         window = self.monitor.window * self.monitor.decimate
         self._e_free = deque(maxlen=window)   # residuals (mm) for the RMS on /diagnostics
         self._e_one = deque(maxlen=window)
@@ -207,6 +238,28 @@ class ModelServer(Node):
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     # -- parameters -----------------------------------------------------------------------------
+    def _build_monitor(self) -> ResidualMonitor:
+        """The ResidualMonitor of the monitor_* parameters; ValueError names the bad one."""
+        g = self.get_parameter
+        test = g("monitor_test").value
+        if test not in MONITOR_TESTS:
+            raise ValueError(f"monitor_test must be one of {MONITOR_TESTS}, got {test!r}")
+        if test == "auto":
+            test = AUTO_TEST[self.monitor_residual]
+        window = int(g("monitor_window").value) or AUTO_WINDOW[test]
+        growth = float(g("monitor_growth").value)
+        if growth != 0.0 and not growth > 1.0:
+            raise ValueError(f"monitor_growth must be > 1 (or 0 = off), got {growth}")
+        try:
+            return ResidualMonitor(
+                window=window, lags=g("monitor_lags").value,
+                check_every=g("monitor_check_every").value,
+                patience=g("monitor_patience").value, decimate=g("monitor_decimate").value,
+                test=test, reference=g("monitor_reference").value,
+                bias_factor=g("monitor_bias_factor").value, growth=growth or None, unit="mm")
+        except ValueError as exc:
+            raise ValueError(f"monitor_* parameters: {exc}") from None
+
     @staticmethod
     def _check(**new) -> str:
         if "u_max_v" in new:
@@ -445,15 +498,28 @@ class ModelServer(Node):
         def rms(e) -> str:
             return f"{math.sqrt(sum(x * x for x in e) / len(e)):.5f}" if e else "nan"
 
-        s = self.monitor.status
-        level = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR)[s.level]
-        return self._status("residual", level, s.message,
-                            monitor_residual=self.monitor_residual,
-                            white=s.white, stale=s.level == 2, ljung_box_p=f"{s.p_value:.4g}",
-                            window_rms_mm=f"{s.rms:.4g}", window_mean_mm=f"{s.mean:.4g}",
-                            free_run_rms_mm=rms(self._e_free), one_step_rms_mm=rms(self._e_one),
-                            predictions=self.pred_count, residuals=self.residual_count,
-                            free_run_restarts=self.free_resets)
+        def num(x: float) -> str:
+            return f"{x:.4g}"
+
+        mon = self.monitor
+        s = mon.status
+        # A stale model is a warning (the loop still runs; refit and reload); one failed check
+        # is not yet one.
+        level = DiagnosticStatus.WARN if s.level == 2 else DiagnosticStatus.OK
+        return self._status(
+            "residual", level, s.message,
+            stale=s.level == 2, monitor_residual=self.monitor_residual, monitor_test=mon.test,
+            failed_checks=s.failed, patience=mon.patience,
+            reference_samples=f"{s.reference_samples}/{mon.reference}",
+            reference_mean_mm=num(s.reference_mean), reference_spread_mm=num(s.reference_spread),
+            mean_shift_mm=num(s.shift), mean_shift_limit_mm=num(s.shift_limit),
+            window_spread_mm=num(s.spread), spread_limit_mm=num(s.spread_limit),
+            white=s.white, ljung_box_q=num(s.q), ljung_box_limit=num(s.q_limit),
+            ljung_box_p=f"{s.p_value:.4g}",
+            window_rms_mm=num(s.rms), window_mean_mm=num(s.mean),
+            free_run_rms_mm=rms(self._e_free), one_step_rms_mm=rms(self._e_one),
+            predictions=self.pred_count, residuals=self.residual_count,
+            free_run_restarts=self.free_resets)
 
 
 def main(args: list[str] | None = None) -> None:
@@ -461,7 +527,8 @@ def main(args: list[str] | None = None) -> None:
              usage="model_server [--ros-args -p model_file:=MODEL.json "
                    "-p inverse_model_file:=INVERSE.json -p u_max_v:=3.0 "
                    "-p history_voltage:=applied|clamped|model "
-                   "-p monitor_residual:=one_step|free_run -p use_sim_time:=true]\n"
+                   "-p monitor_residual:=free_run|one_step "
+                   "-p monitor_test:=auto|drift|whiteness|both -p use_sim_time:=true]\n"
                    "service: /model_server/reload (std_srvs/srv/Trigger)")
 
 
