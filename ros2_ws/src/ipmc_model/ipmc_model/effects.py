@@ -652,17 +652,82 @@ def _fit_creep(model, narx, u, y, t, iterations):
 
 
 def _fit_drift(model, narx, u, y, t, iterations):
-    """Drift from the cross-fitted free-run residual of the current structure: r regressed on
-    z t and t (z: the out-of-fold prediction; least squares, intercept not kept); then the
-    baseline is refitted on the data with the drift removed."""
-    r = cross_fitted_residual(model, narx, u, y)
-    ok = np.isfinite(r)
-    z = (y - r)[ok]
-    mins = t[ok] / 60.0
-    A = np.column_stack([z * mins, mins, np.ones_like(mins)])
-    coef, *_ = np.linalg.lstsq(A, r[ok], rcond=None)
-    eff = Effect("drift", gain_loss_per_min=float(-coef[0]), offset_mm_per_min=float(coef[1]))
+    """Drift by backfitting on the in-sample residual: alternately (a) the baseline is fitted
+    on the data with the current drift removed and simulated on the fit input (z), and
+    (b) y is regressed on z t, t and an intercept (least squares; the intercept, a mean the
+    baseline takes up by itself, is not kept) to give gain loss and offset per minute.
+
+    In sample is right here (unlike creep): a time trend is not a function of the input
+    window, so the NARX cannot absorb it; a cross-fitted residual is wrong for drift, because
+    each half's model has learned the other half's mean drift and the residual jumps between
+    the halves. ``iterations`` + 2 passes (the first from the model as given)."""
+    dt = model.dt_s
+    mins = t / 60.0
+    eff = None
+    cur = model
+    for _ in range(int(iterations) + 2):
+        if eff is not None:
+            cur = model.refit(narx, u, y, model.effects + [eff])
+        L = cur.max_lag_
+        yy = cur.simulate(u, y[:L])
+        # z: the prediction without the drift being fitted (backward of this drift only)
+        z = yy if eff is None else eff.backward(yy, u, t, dt)
+        ok = np.arange(u.size) >= L
+        A = np.column_stack([z[ok] * mins[ok], mins[ok], np.ones(int(ok.sum()))])
+        coef, *_ = np.linalg.lstsq(A, (y - z)[ok], rcond=None)
+        eff = Effect("drift", gain_loss_per_min=float(-coef[0]),
+                     offset_mm_per_min=float(coef[1]))
     return model.refit(narx, u, y, model.effects + [eff]), eff
+
+
+def dead_time_test(u, y, dt_s: float, *, max_delay_s: float = 0.5, output_lags: int = 4,
+                   input_lags: int = 2) -> dict:
+    """Dead time of the record from linear ARX one-step fits (refit-free delay evidence).
+
+    For every candidate dead time nk = 0..K samples (K from ``max_delay_s``) an ARX
+    y_k = sum a_i y_{k-i} + sum_j b_j u_{k-nk-j} + c (``output_lags`` a_i, ``input_lags`` b_j,
+    least squares, the same rows for every nk) is fitted; the dead time d is the nk of the
+    smallest residual sum of squares. A plant without delay answers within the sample
+    (d = 0: the simulated IPMC's charging starts at once, so lag 0 carries information no
+    later lag has). The evidence is an F test of the ARX with lags 0..d + input_lags - 1
+    against the one without lags d..d + input_lags - 1 (i.e. nk = 0): the response after d
+    explains the data significantly better than a response from lag 0.
+
+    Returns
+    -------
+    dict
+        ``delay_samples`` d, ``delay_s``, ``p_value`` (F test; 1.0 when d = 0),
+        ``rss_ratio`` RSS(nk = 0) / RSS(nk = d), ``at_edge`` (d = K: no interior minimum).
+    """
+    from scipy import stats
+
+    u = as_signal("u", u)
+    y = as_signal("y", y)
+    same_length(u=u, y=y)
+    na, nb = int(output_lags), int(input_lags)
+    K = max(1, int(round(max_delay_s / dt_s)))
+    rows = np.arange(max(na, nb + K), u.size)
+    if rows.size < 10 * (na + nb + K):
+        raise ValueError(f"too few samples ({u.size}) for a dead-time scan up to {K} samples")
+    ys = [y[rows - i] for i in range(1, na + 1)]
+    one = np.ones(rows.size)
+
+    def rss(lags):
+        X = np.column_stack(ys + [u[rows - j] for j in lags] + [one])
+        coef, *_ = np.linalg.lstsq(X, y[rows], rcond=None)
+        e = y[rows] - X @ coef
+        return float(e @ e), X.shape[1]
+
+    r = [rss(range(nk, nk + nb))[0] for nk in range(K + 1)]
+    d = int(np.argmin(r))
+    out = {"delay_samples": d, "delay_s": d * float(dt_s), "p_value": 1.0,
+           "rss_ratio": r[0] / r[d] if r[d] > 0 else 1.0, "at_edge": d == K}
+    if d > 0:
+        r_full, p_full = rss(range(0, d + nb))
+        dof = rows.size - p_full
+        F = ((r[0] - r_full) / d) / (r_full / dof) if r_full > 0 else 0.0
+        out["p_value"] = float(stats.f.sf(F, d, dof))
+    return out
 
 
 def _grid(name, u, y, dt):
@@ -723,6 +788,16 @@ def fit_effect(name: str, model: AugmentedModel, narx: NarxModel, u, y, *,
         return _fit_creep(model, narx, u, y, t, iterations)
     if name == "drift":
         return _fit_drift(model, narx, u, y, t, iterations)
+    if name == "delay":
+        # The dead time comes from the ARX scan (dead_time_test), not from a grid scored by
+        # refits: the NARX's lag window absorbs a delay, so refit scores hardly tell delays
+        # apart, while the one-step ARX sees where the response starts.
+        dt_test = dead_time_test(u, y, model.dt_s)
+        if dt_test["delay_samples"] == 0:
+            raise ValueError("no dead time: the linear ARX scan puts the response at lag 0")
+        eff = Effect("delay", delay_s=dt_test["delay_s"])
+        eff.test_ = dt_test
+        return model.refit(narx, u, y, model.effects + [eff]), eff
     screen = narx if screen_narx is None else screen_narx
 
     def build(effects, uu, yy):

@@ -12,6 +12,7 @@ from ipmc_model.effects import (
     EFFECT_NAMES,
     AugmentedModel,
     Effect,
+    dead_time_test,
     fit_effect,
     load_augmented,
     save_augmented,
@@ -172,6 +173,28 @@ def test_fit_creep_recovers_parameters_on_baseline_plus_creep():
 def test_every_candidate_fits(record, base):
     u, y = record
     for name in EFFECT_NAMES:
+        if name == "delay":  # its dead time comes from the ARX scan: none on the clean plant
+            with pytest.raises(ValueError, match="no dead time"):
+                fit_effect(name, base, _narx(), u, y, screen_narx=_narx(200))
+            continue
         m, eff = fit_effect(name, base, _narx(), u, y, screen_narx=_narx(200))
         assert m.effect_names == [name] and eff.name == name
         assert np.all(np.isfinite(m.simulate(u[:200])))
+
+
+@pytest.mark.parametrize("delay_s, seed", [(None, 0), (None, 3), (0.05, 0), (0.1, 3), (0.2, 5)])
+def test_dead_time_test_finds_the_plant_delay(delay_s, seed):
+    # the plant rounds its delay to whole samples (0.05 s at 50 Hz -> 2 samples); seeds 3 and 5
+    # were not used to set anything
+    _, us = random_sine(60, RATE, 2.5, (0.05, 1.0), 8, seed=seed + 2)
+    _, st = random_steps(60, RATE, 1.5, (3.0, 10.0), seed=seed + 3)
+    u = np.clip(0.6 * us + st, -3, 3)
+    fx = {} if delay_s is None else {"delay": {"delay_s": delay_s}}
+    y = IpmcPlant(effects=fx, seed=seed, dt_s=1 / RATE).run(u).y_mm
+    t = dead_time_test(u, y, 1 / RATE)
+    expected = 0 if delay_s is None else int(round(delay_s * RATE))
+    assert t["delay_samples"] == expected
+    if expected:
+        assert t["p_value"] < 1e-3 and not t["at_edge"]
+    else:
+        assert t["p_value"] == 1.0
