@@ -654,8 +654,9 @@ def _fit_creep(model, narx, u, y, t, iterations):
 def _fit_drift(model, narx, u, y, t, iterations):
     """Drift by backfitting on the in-sample residual: alternately (a) the baseline is fitted
     on the data with the current drift removed and simulated on the fit input (z), and
-    (b) y is regressed on z t, t and an intercept (least squares; the intercept, a mean the
-    baseline takes up by itself, is not kept) to give gain loss and offset per minute.
+    (b) y - z is regressed on z t, t, z and an intercept (least squares; z and the intercept,
+    the mean gain and offset the baseline takes up by itself, are not kept) to give gain loss
+    and offset per minute.
 
     In sample is right here (unlike creep): a time trend is not a function of the input
     window, so the NARX cannot absorb it; a cross-fitted residual is wrong for drift, because
@@ -673,7 +674,9 @@ def _fit_drift(model, narx, u, y, t, iterations):
         # z: the prediction without the drift being fitted (backward of this drift only)
         z = yy if eff is None else eff.backward(yy, u, t, dt)
         ok = np.arange(u.size) >= L
-        A = np.column_stack([z[ok] * mins[ok], mins[ok], np.ones(int(ok.sum()))])
+        # z and 1 are nuisance terms: the baseline fitted on drifting data has the record's
+        # mean gain and offset, so the drift shows as a z t and t slope around them
+        A = np.column_stack([z[ok] * mins[ok], mins[ok], z[ok], np.ones(int(ok.sum()))])
         coef, *_ = np.linalg.lstsq(A, (y - z)[ok], rcond=None)
         eff = Effect("drift", gain_loss_per_min=float(-coef[0]),
                      offset_mm_per_min=float(coef[1]))
@@ -730,7 +733,7 @@ def dead_time_test(u, y, dt_s: float, *, max_delay_s: float = 0.5, output_lags: 
     return out
 
 
-def _grid(name, u, y, dt):
+def _grid(name, u, y, dt, rate_tau_max_s=np.inf):
     umax = float(np.max(np.abs(u)))
     ymax = float(np.max(np.abs(y)))
     if name == "delay":
@@ -743,7 +746,7 @@ def _grid(name, u, y, dt):
     if name == "saturation":
         return [{"limit_mm": f * ymax} for f in (1.03, 1.08, 1.15, 1.3, 1.5, 2.0, 3.0)]
     if name == "rate_dependence":
-        return [{"tau_s": ts} for ts in (2 * dt, 0.05, 0.2, 1.0)]
+        return [{"tau_s": ts} for ts in (2 * dt, 0.05, 0.2, 1.0) if ts <= rate_tau_max_s]
     raise ValueError(name)
 
 
@@ -804,7 +807,12 @@ def fit_effect(name: str, model: AugmentedModel, narx: NarxModel, u, y, *,
         return model.refit(screen, uu, yy, effects)
 
     best = None
-    for params in _grid(name, u, y, model.dt_s):
+    # The rate channel may not reach beyond a third of the baseline's lag window: a slower
+    # low-pass of du/dt is u minus its slow average, i.e. memory longer than the window, and on
+    # the clean plant that memory (its Bouc-Wen hysteresis, docs/diagnose.md) passed as a
+    # "rate dependence" of 1 s (2 of 3 clean 90 s records).
+    window_s = max(model.max_lag_, getattr(narx, "lag_step", 1) * 12) * model.dt_s
+    for params in _grid(name, u, y, model.dt_s, rate_tau_max_s=window_s / 3.0):
         eff = Effect(name, **params)
         try:
             with np.errstate(all="ignore"):

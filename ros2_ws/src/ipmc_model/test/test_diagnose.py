@@ -68,6 +68,32 @@ def test_creep_found_with_undeclared_parameters(seed, creep):
     assert d.rmse_after_mm < 0.7 * d.rmse_before_mm
 
 
+@pytest.mark.parametrize("seed, delay_s", [
+    (0, 0.2),
+    (1, 0.2),  # seed 1 and 0.1 s were not used to set the dead-time scan or the rule
+    (0, 0.1),
+])
+def test_delay_found_with_undeclared_parameters(seed, delay_s):
+    t, u, y = _plant({"delay": {"delay_s": delay_s}}, seed=seed, seconds=90.0)
+    d = diagnose(t, u, y, candidates=("creep", "drift", "delay", "saturation"), **FAST)
+    assert d.effects_found[:1] == ["delay"]
+    delay = next(e for e in d.model_after.effects if e.name == "delay")
+    assert delay.params["delay_s"] == pytest.approx(delay_s, abs=0.5 / RATE)
+    assert d.rmse_after_mm < 0.9 * d.rmse_before_mm
+
+
+@pytest.mark.parametrize("seed", [0, 1])  # seed 1 not used to set anything
+def test_drift_found_with_undeclared_parameters(seed):
+    drift = {"gain_loss_per_min": 0.1, "offset_mm_per_min": 0.3}
+    t, u, y = _plant({"drift": drift}, seed=seed, seconds=90.0)
+    d = diagnose(t, u, y, candidates=("creep", "drift", "delay", "saturation"), **FAST)
+    assert d.effects_found[:1] == ["drift"]
+    fitted = next(e for e in d.model_after.effects if e.name == "drift").params
+    assert fitted["offset_mm_per_min"] == pytest.approx(0.3, rel=0.3)
+    assert 0.0 < fitted["gain_loss_per_min"] < 0.2
+    assert d.rmse_after_mm < 0.8 * d.rmse_before_mm
+
+
 def test_cli_writes_the_contract(tmp_path):
     t, u, y = _plant({}, seed=0, seconds=40.0)
     csv = save_csv(Record(t, u, y), tmp_path / "clean.csv")
