@@ -45,6 +45,7 @@ class Processes:
         self.env = env
         self.log_dir = log_dir
         self.procs: dict[str, subprocess.Popen] = {}
+        self.returncodes: dict[str, int] = {}  # of the processes stop() ended
 
     def start(self, name: str, argv: list[str], **popen) -> subprocess.Popen:
         log = open(self.log_dir / f"{name}.log", "w")  # noqa: SIM115 - closed with the process
@@ -76,8 +77,10 @@ class Processes:
                 proc.kill()
                 proc.wait()
                 proc._log.close()
+                self.returncodes[name] = proc.returncode
                 return float("inf")
         proc._log.close()
+        self.returncodes[name] = proc.returncode
         return time.monotonic() - t0
 
     def stop_all(self) -> dict[str, float]:

@@ -158,3 +158,7 @@ def test_sigint_stops_every_node_within_2s(processes, rclpy_context, spin, inver
     exit_s = processes.stop_all()
     assert sorted(exit_s) == names == ["controller", "model_server", "reference", "sim_plant"]
     assert all(t <= EXIT_BUDGET_S for t in exit_s.values()), exit_s
+    # A clean exit, not a traceback: a signal raised inside rclpy's message conversion once
+    # ended model_server with "RuntimeError: Unable to convert call argument" and status 1.
+    assert processes.returncodes == {n: 0 for n in names}, {
+        n: processes.log(n)[-600:] for n, c in processes.returncodes.items() if c != 0}

@@ -85,3 +85,57 @@ def test_lockstep_runs_faster_than_real_time_and_publishes_clock(processes, rclp
     assert processes.stop("sim_plant") <= 2.0
     assert sim > 1.5 * wall, f"{sim:.2f} s simulated in {wall:.2f} s of wall time"
     assert np.all(np.diff(clocks) > 0)
+
+
+def test_lockstep_applies_the_command_stamped_for_each_sample(processes, rclpy_context, spin):
+    """A stamped command answers one sample: stale and duplicate commands never shift the rest
+    by a sample (a bare Float64 cannot say which sample it answers)."""
+    from geometry_msgs.msg import Vector3Stamped
+
+    processes.start_node("sim_plant", "sim_plant", {"clock_mode": "lockstep",
+                                                    "lockstep_timeout_s": 5.0})
+    node = rclpy.create_node("stamped_command_test", context=rclpy_context)
+    try:
+        pub = node.create_publisher(Vector3Stamped, "/ipmc/command_stamped", 10)
+        pub_plain = node.create_publisher(Float64, "/ipmc/command", 10)
+        applied = {}   # sample stamp (ns) -> applied voltage (V)
+        answered = []  # stamps answered so far
+
+        def stamp_ns(m):
+            return m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+
+        def on_voltage(m):
+            applied[stamp_ns(m)] = m.vector.x
+            k = len(answered)
+            if k >= 40:
+                return
+            # For each sample: a stale command (previous stamp) and a bare Float64 first, both
+            # wrong; then the right one, stamped with this sample, and a duplicate of it later.
+            sec, nsec = m.header.stamp.sec, m.header.stamp.nanosec
+            wrong = Vector3Stamped()
+            wrong.header.stamp.sec, wrong.header.stamp.nanosec = sec, max(0, nsec - 10_000_000)
+            wrong.vector.x = -2.5
+            pub.publish(wrong)
+            pub_plain.publish(Float64(data=-2.9))
+            right = Vector3Stamped()
+            right.header.stamp.sec, right.header.stamp.nanosec = sec, nsec
+            right.vector.x = 0.05 * (k % 20)
+            pub.publish(right)
+            pub.publish(right)
+            answered.append(stamp_ns(m))
+
+        node.create_subscription(Vector3Stamped, "/ipmc/voltage", on_voltage, SAMPLE_QOS)
+        # The plant must know the stamped publisher before its time starts, which it does once
+        # someone listens to the displacement.
+        assert spin(node, lambda: pub.get_subscription_count() > 0, 20.0), "plant not up"
+        spin(node, lambda: False, 0.5)
+        node.create_subscription(PointStamped, "/ipmc/displacement", lambda m: None, SAMPLE_QOS)
+        assert spin(node, lambda: len(applied) > 40, 30.0), f"only {len(applied)} samples"
+    finally:
+        node.destroy_node()
+    processes.stop("sim_plant")
+    stamps = sorted(applied)
+    # The command answering sample k is applied over the next one (k + 1).
+    for k, s in enumerate(answered[1:39], start=1):
+        nxt = stamps[stamps.index(s) + 1]
+        assert applied[nxt] == pytest.approx(0.05 * (k % 20)), (k, applied[nxt])

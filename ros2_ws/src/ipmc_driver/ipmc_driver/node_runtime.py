@@ -8,8 +8,11 @@
   driver's 0 V frame) and closes files. rclpy's own handlers are off on purpose: they shut the
   context down under the executor, after which the last command cannot be sent and a message
   being taken raises RuntimeError (ros/joint_state_publisher#117).
-- A 0.1 s wall-clock timer wakes the executor so the Python signal handler runs promptly even
-  when a node's own timers follow a simulated clock that has stopped.
+- The signal handlers only note the signal; a 0.1 s wall-clock timer raises it inside the
+  executor, between callbacks. Raising from the handler itself could land inside rclpy's C++
+  message conversion, which then fails with "RuntimeError: Unable to convert call argument"
+  and exits 1 with a traceback (seen on model_server under lock-step load). The timer also
+  wakes the executor when a node's own timers follow a simulated clock that has stopped.
 - A node that cannot start (bad parameter, missing port) prints one line and exits 1.
 """
 
@@ -28,16 +31,21 @@ from rclpy.signals import SignalHandlerOptions
 WAKE_PERIOD_S = 0.1
 
 
-def _wake() -> None:
-    """No-op: its only job is to return the executor to Python so signals are handled."""
-
-
 class Terminated(Exception):
-    """Raised from the SIGTERM handler to leave ``spin()`` like SIGINT does."""
+    """Raised inside the executor after SIGINT or SIGTERM, to leave ``spin()``."""
 
 
-def _on_sigterm(signum, frame) -> None:
-    raise Terminated()
+_signalled: list[int] = []
+
+
+def _on_signal(signum, frame) -> None:
+    _signalled.append(signum)
+
+
+def _wake() -> None:
+    """Leave ``spin()`` if a signal came (raised here, between callbacks, not in the handler)."""
+    if _signalled:
+        raise Terminated()
 
 
 def run_node(factory: Callable[[], Node], args: list[str] | None = None, *, name: str,
@@ -64,8 +72,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None, *, name
             print(f"\nusage: {usage}")
         return
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
-    previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    _signalled.clear()
+    previous_int = signal.signal(signal.SIGINT, _on_signal)
+    previous = signal.signal(signal.SIGTERM, _on_signal)
     node = None
     try:
         node = factory()

@@ -2,7 +2,10 @@
 
 Subscribes ``/ipmc/reference`` (PointStamped, x in m, y its rate in m/s),
 ``/ipmc/displacement`` (PointStamped, x in m) and ``/ipmc/feedforward`` (Vector3Stamped, x in
-V); publishes ``/ipmc/command`` (std_msgs/Float64, V, |u| <= 3 V) and ``/diagnostics``.
+V); publishes ``/ipmc/command`` (std_msgs/Float64, V, |u| <= 3 V), with
+``trigger:=measurement`` the same command on ``/ipmc/command_stamped`` (Vector3Stamped, x in V,
+stamped with the displacement sample the step answers: a lock-step ``sim_plant`` pairs each
+sample with its own command by it), and ``/diagnostics``.
 
 - ``trigger:=timer`` (default): one command every ``1/rate_hz`` s of the node's clock (ROS time,
   so with ``use_sim_time:=true`` it follows ``/clock`` of ``sim_plant`` in lock-step mode);
@@ -162,6 +165,10 @@ class Controller(Node):
         self._saturated = deque(maxlen=200)
 
         self.pub_command = self.create_publisher(Float64, "/ipmc/command", COMMAND_QOS)
+        self.pub_command_stamped = (
+            self.create_publisher(Vector3Stamped, "/ipmc/command_stamped", COMMAND_QOS)
+            if self.trigger == "measurement" else None)
+        self._answer_ns = 0  # stamp of the sample the next command answers
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_subscription(PointStamped, "/ipmc/reference", self._on_reference,
                                  INPUT_QOS)
@@ -299,9 +306,20 @@ class Controller(Node):
         now = self._now_s()
         self._step(now, now)
 
+    def _publish_command(self, u_v: float) -> None:
+        self.pub_command.publish(Float64(data=u_v))
+        if self.pub_command_stamped is None:
+            return
+        msg = Vector3Stamped()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(self._answer_ns, 1_000_000_000)
+        msg.vector.x = u_v
+        self.pub_command_stamped.publish(msg)
+
     def _step(self, t_s: float, now: float, target_ns: int | None = None) -> None:
         """One control step at sample time ``t_s`` (s); ``now`` is the node clock (s);
         ``target_ns``: stamp of the reference sample this command aims at, if known."""
+        self._answer_ns = (target_ns - int(round(1e9 / self.rate_hz)) if target_ns is not None
+                           else int(round(t_s * 1e9)))
         wall = time.perf_counter()
         self._count_deadline(wall)
         dt = (1.0 / self.rate_hz) if self._last_t_s is None else t_s - self._last_t_s
@@ -309,9 +327,13 @@ class Controller(Node):
         if not (0.0 < dt <= 10.0 / self.rate_hz):
             # Clock jumped (sim time reset, pause): hold the command, restart timing.
             self.skipped_steps += 1
-            self.pub_command.publish(Float64(data=self.hybrid.command))
+            self._publish_command(self.hybrid.command)
             return
         ff_fresh = self._ff_v is not None and now - self._ff_rx_s <= self.ff_timeout_s
+        if target_ns is not None and target_ns in self._recent_ffs:
+            # The feedforward answering this very sample is here: fresh whatever the receive
+            # time says (under use_sim_time it may have come before the /clock that dates it).
+            ff_fresh = True
         y_fresh = self._y_mm is not None and now - self._y_rx_s <= self.y_timeout_s
         mode = self.hybrid.mode
         needs_y = mode != "inverse" or not ff_fresh
@@ -337,7 +359,7 @@ class Controller(Node):
         y_mm = self._y_mm if self._y_mm is not None else ref_mm
         u = self.hybrid.compute_command(ref_mm, y_mm, dt, ff_v,
                                         rate if self.use_reference_rate else None)
-        self.pub_command.publish(Float64(data=u))
+        self._publish_command(u)
         self.step_us.append((time.perf_counter() - wall) * 1e6)
         self._saturated.append(self.hybrid.saturated)
         self.ticks += 1
@@ -356,7 +378,7 @@ class Controller(Node):
             self.get_logger().warn(f"{reason}: command 0 V")
             self._idle_reason = reason
             self.hybrid.reset()
-        self.pub_command.publish(Float64(data=0.0))
+        self._publish_command(0.0)
 
     def _count_deadline(self, wall: float) -> None:
         if self._last_wall is not None and self.trigger == "timer" and not self._sim_time:
@@ -430,7 +452,7 @@ class Controller(Node):
         # Leave the actuator at rest if the graph still carries messages (best effort: after an
         # external shutdown the context is gone; the driver's own command timeout covers that).
         try:
-            self.pub_command.publish(Float64(data=0.0))
+            self._publish_command(0.0)
         except Exception:  # noqa: BLE001 - any failure here must not mask the shutdown
             pass
         super().destroy_node()

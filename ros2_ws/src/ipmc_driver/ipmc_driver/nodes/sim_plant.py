@@ -9,7 +9,11 @@ Clocks (``clock_mode``):
 - ``lockstep``: the plant owns time and publishes ``/clock``; after each sample it waits for the
   next command (at most ``lockstep_timeout_s`` of wall time; not at all when nobody publishes
   commands), so an experiment runs as fast as the graph answers. Other nodes set
-  ``use_sim_time:=true``.
+  ``use_sim_time:=true``. When someone publishes ``/ipmc/command_stamped`` (Vector3Stamped, x
+  in V, stamped with the sample it answers: the ``controller`` does), the plant waits for the
+  command stamped with the sample it just published and applies that one: a late command for
+  an older sample, or a second one for the same sample, can then never shift every later
+  command by a sample (a bare Float64 cannot say which sample it answers).
 """
 
 from __future__ import annotations
@@ -94,6 +98,11 @@ class SimPlant(Node):
         self.pub_clock = (self.create_publisher(ClockMsg, "/clock", 10)
                           if self.lockstep else None)
         self.create_subscription(Float64, "/ipmc/command", self._on_command, COMMAND_QOS)
+        self._sample_ns = -1      # stamp of the last published sample
+        self._answer_v: float | None = None  # the stamped command answering it, V
+        if self.lockstep:
+            self.create_subscription(Vector3Stamped, "/ipmc/command_stamped",
+                                     self._on_command_stamped, COMMAND_QOS)
 
         wall = Clock(clock_type=ClockType.STEADY_TIME)
         if self.lockstep:
@@ -119,6 +128,11 @@ class SimPlant(Node):
         else:
             self.get_logger().warn("ignoring a non-finite command", throttle_duration_sec=1.0)
 
+    def _on_command_stamped(self, msg: Vector3Stamped) -> None:
+        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        if stamp_ns == self._sample_ns and math.isfinite(msg.vector.x):
+            self._answer_v = float(msg.vector.x)
+
     def _on_tick(self) -> None:
         self._publish_sample(*self.plant.step(self.command_v))
 
@@ -130,16 +144,25 @@ class SimPlant(Node):
                 and self.count_subscribers("/clock") >= self._min_clock_subscribers)
             if not self._started:
                 return
-        answered = self.command_count > self._count_at_sample
         waited = time.monotonic() - self._sample_wall
-        nobody = self.count_publishers("/ipmc/command") == 0
         timeout = self.get_parameter("lockstep_timeout_s").value
+        if self.count_publishers("/ipmc/command_stamped") > 0:
+            if self._answer_v is not None:
+                self.command_v = self._answer_v
+            elif waited < timeout:
+                return
+            self._publish_sample(*self.plant.step(self.command_v))
+            return
+        answered = self.command_count > self._count_at_sample
+        nobody = self.count_publishers("/ipmc/command") == 0
         if answered or nobody or waited >= timeout:
             self._publish_sample(*self.plant.step(self.command_v))
 
     def _publish_sample(self, u_applied_v: float, y_mm: float) -> None:
         # plant.t_s is already the next sample's time: this sample was taken one period earlier.
         stamp = to_time_msg(self._t0 + self.plant.t_s - self.dt_s)
+        self._sample_ns = stamp.sec * 1_000_000_000 + stamp.nanosec
+        self._answer_v = None
         if self.pub_clock is not None:
             self.pub_clock.publish(ClockMsg(clock=stamp))
         v = Vector3Stamped()
