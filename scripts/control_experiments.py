@@ -26,13 +26,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from ipmc_control.demo import INVERSE as RECIPE
+from ipmc_control.demo import TRAIN_INVERSE as TRAIN
+
 BIN = Path(sys.executable).parent
-TRAIN = ["--input", "random-sine", "--amplitude", "3", "--frequency", "0.5",
-         "--seconds", "300", "--seed", "1"]
-# The identification recipe (docs/control.md): no voltage autoregression (input lags 0: with
-# it the free-running inverse drifts), 10 displacement lags 20 ms apart, a fixed-size LSSVM.
-RECIPE = ["--model", "lssvm-narx", "--inverse", "--tune", "none", "--C", "1e4", "--sigma", "2",
-          "--input-lags", "0", "--output-lags", "10", "--lag-step", "2", "--prototypes", "800"]
 # (reference, plant effects, label, paper's figures)
 EXPERIMENTS = [
     ("sine", [], "(a) sine 2.5 mm @ 1/2pi Hz",
@@ -42,6 +39,7 @@ EXPERIMENTS = [
     ("random-reachable", [], "(b') random sine 0-0.7 Hz, -4..2 mm (reachable)", {}),
     ("constant", ["creep"], "(c) constant -4 mm hold, 60 s, creep on",
      {"hybrid": "0.8756 (rig, +4 mm)"}),
+    ("constant-reachable", ["creep"], "(c') constant -3 mm hold, 60 s, creep on", {}),
 ]
 MODES = ("pid", "inverse", "hybrid")
 

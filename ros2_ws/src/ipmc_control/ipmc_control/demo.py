@@ -40,9 +40,11 @@ VALIDATION = {
 # Forward: the `ipmc identify` defaults (6/6 lags, ABC 10x10, 4 blocked folds) at lag step 10.
 FORWARD = ["--model", "lssvm-narx", "--lag-step", "10"]
 # Inverse for the feedforward: docs/control.md's recipe (no past voltages, 10 displacement lags
-# 20 ms apart).
+# 20 ms apart, a memory channel: the desired displacement low-passed at 1 s, the inverse of the
+# back-relaxation).
 INVERSE = ["--model", "lssvm-narx", "--inverse", "--tune", "none", "--C", "1e4", "--sigma", "2",
-           "--input-lags", "0", "--output-lags", "10", "--lag-step", "2", "--prototypes", "800"]
+           "--input-lags", "0", "--output-lags", "10", "--lag-step", "2", "--prototypes", "800",
+           "--memory-taus", "1.0"]
 # Rig data with an effect nobody declares to the diagnosis: steps and holds show creep.
 CREEP_DATA = ["--input", "steps", "--amplitude", "2.5", "--seconds", "300", "--seed", "5",
               "--effect", "creep"]
