@@ -17,13 +17,17 @@ Procedure (:func:`diagnose`):
    fitted effect changes in the prediction on the held-out input: for delay, dead zone,
    asymmetry and saturation the effect alone around the current baseline (not refitted,
    :data:`BARE_SIGNATURE`); for creep, drift and rate dependence the refitted model's change;
-   and
+   for delay, refit-free: the linear ARX dead-time scan
+   (:func:`~ipmc_model.effects.dead_time_test`, F test p < :data:`REFIT_FREE_ALPHA`); and
    (b) *improvement*: the held-out free-run RMSE falls by at least ``threshold`` (default
    10 %) relative to the current model; for the effects whose fit refits the baseline NARX
    (delay, dead zone, asymmetry, rate dependence, saturation) by at least the larger of
    ``threshold`` and twice the *refit spread*, the relative RMSE change of the current model
    merely refitted on other evenly spaced rows (80 % and 90 % of ``max_rows``): an
-   improvement a refit alone can give is no evidence of a missing effect.
+   improvement a refit alone can give is no evidence of a missing effect. An effect with
+   refit-free evidence (delay) instead needs ``threshold`` with the budget and with each of the
+   other row budgets (:data:`ROW_SHARES`), paired: effect and current model refitted on the
+   same rows.
    The best accepted candidate is added, and the search repeats on the rest (at most
    ``max_effects`` effects). With no missing effect nothing passes.
 """
