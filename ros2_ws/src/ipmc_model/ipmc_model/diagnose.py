@@ -627,13 +627,15 @@ def _settled_rmse(res, after_s: float = SETTLE_S) -> float:
     return float(np.sqrt(np.mean(e * e)))
 
 
-def control_inverse_template(n_samples: int = 0) -> InverseNarxModel:
+def control_inverse_template(n_samples: int = 0, dt_s: float = 0.01) -> InverseNarxModel:
     """The inverse NARX recipe of docs/control.md (no past voltages, ten displacement lags
-    20 ms apart, C = 1e4, sigma = 2): the plain and the creep-augmented feedforward use it."""
+    20 ms apart, a 1 s memory channel, C = 1e4, sigma = 2): the plain and the creep-augmented
+    feedforward use it."""
     from .narx import make_lssvm
 
     return InverseNarxModel(make_lssvm(C=1e4, sigma=2.0, n_samples=n_samples, n_prototypes=800),
-                            input_lags=0, output_lags=10, lag_step=2)
+                            input_lags=0, output_lags=10, lag_step=2, memory_taus_s=(1.0,),
+                            dt_s=dt_s)
 
 
 def creep_hold_experiment(*, identify_s: float = 120.0, duration_s: float | None = None,
@@ -660,7 +662,8 @@ def creep_hold_experiment(*, identify_s: float = 120.0, duration_s: float | None
     dict
         ``rmse_before_mm`` (hybrid, plain inverse), ``rmse_after_mm`` (hybrid, creep-augmented
         inverse; None if no creep was found), ``settled_rmse_before_mm`` /
-        ``settled_rmse_after_mm`` (t >= 2 s), ``paper_rmse_mm`` (0.8756), ``effects_found``,
+        ``settled_rmse_after_mm`` (t >= 2 s), the same four with the inverse alone (open loop,
+        ``inverse_only_*``), ``paper_rmse_mm`` (0.8756), ``effects_found``,
         ``creep_fitted`` (params), the identification's held-out free-run RMSE before/after,
         ``results`` (the two ``TrackResult``) and ``diagnosis``.
     """
@@ -680,7 +683,7 @@ def creep_hold_experiment(*, identify_s: float = 120.0, duration_s: float | None
     d = diagnose(run.t_s, run.u_v, run.y_mm, seed=seed, progress=say,
                  **(diagnosis_kwargs or {}))
     after = d.model_after
-    template = control_inverse_template(run.u_v.size)
+    template = control_inverse_template(run.u_v.size, dt)
     plain = copy.deepcopy(template).fit(run.u_v, run.y_mm)
     if "creep" in after.effect_names:
         creep_only = AugmentedModel(after.baseline,
@@ -690,20 +693,29 @@ def creep_hold_experiment(*, identify_s: float = 120.0, duration_s: float | None
         aug = None
     dur = DEFAULT_DURATION_S[reference] if duration_s is None else float(duration_s)
     ref = paper_reference(reference)
-    res_before = run_tracking(ref, dur, "hybrid", inverse=plain, rate_hz=rate_hz,
-                              plant=IpmcPlant(effects=fx, seed=seed + 100, dt_s=dt))
+    def track(inverse, mode="hybrid"):
+        return run_tracking(ref, dur, mode, inverse=inverse, rate_hz=rate_hz,
+                            plant=IpmcPlant(effects=fx, seed=seed + 100, dt_s=dt))
+
+    res_before = track(plain)
+    open_before = track(plain, "inverse")
     out = {"paper_rmse_mm": PAPER_CONSTANT_RMSE_MM, "effects_found": d.effects_found,
            "rmse_before_mm": res_before.summary()["rmse_mm"], "rmse_after_mm": None,
            "settled_rmse_before_mm": _settled_rmse(res_before), "settled_rmse_after_mm": None,
            "creep_fitted": next((e.params for e in after.effects if e.name == "creep"), None),
            "identification_rmse_before_mm": d.rmse_before_mm,
            "identification_rmse_after_mm": d.rmse_after_mm, "duration_s": dur,
+           "inverse_only_rmse_before_mm": open_before.summary()["rmse_mm"],
+           "inverse_only_settled_rmse_before_mm": _settled_rmse(open_before),
+           "inverse_only_rmse_after_mm": None, "inverse_only_settled_rmse_after_mm": None,
            "results": {"before": res_before}, "diagnosis": d}
     if aug is not None:
-        res_after = run_tracking(ref, dur, "hybrid", inverse=aug, rate_hz=rate_hz,
-                                 plant=IpmcPlant(effects=fx, seed=seed + 100, dt_s=dt))
+        res_after = track(aug)
+        open_after = track(aug, "inverse")
         out["rmse_after_mm"] = res_after.summary()["rmse_mm"]
         out["settled_rmse_after_mm"] = _settled_rmse(res_after)
+        out["inverse_only_rmse_after_mm"] = open_after.summary()["rmse_mm"]
+        out["inverse_only_settled_rmse_after_mm"] = _settled_rmse(open_after)
         out["results"]["after"] = res_after
     say(f"constant -4 mm hold, hybrid: RMSE {out['rmse_before_mm']:.4f} mm with the plain "
         f"inverse, {out['rmse_after_mm']} mm with the creep-augmented one (paper 0.8756 mm)")
