@@ -138,12 +138,11 @@ class Controller(Node):
 
         # Latest inputs (mm, V) and their receive times on the node clock (s).
         self._ref_mm: float | None = None
-        self._ref_rate: dict[int, float] = {}  # reference stamp -> its rate, mm/s
-        self._ref_rate_last = 0.0
+        self._ref_rate = 0.0                  # rate of the latest reference, mm/s
         self._first_ref_ns: int | None = None   # a step aiming before it has no reference
-        self._recent_refs: OrderedDict[int, float] = OrderedDict()
-        self._ff_ref_mm: float | None = None  # the reference the last feedforward answers
-        self._ff_ref_rate: float | None = None  # and its rate, mm/s
+        # Recent reference samples by stamp: (displacement mm, rate mm/s).
+        self._recent_refs: OrderedDict[int, tuple[float, float]] = OrderedDict()
+        self._ff_ref: tuple[float, float] | None = None  # the one the last feedforward answers
         self._recent_ffs: OrderedDict[int, float] = OrderedDict()
         self._y_mm: float | None = None
         self._y_rx_s = -math.inf
@@ -240,18 +239,16 @@ class Controller(Node):
             if self._first_ref_ns is None:
                 self._first_ref_ns = _stamp_ns(msg)
             self._maybe_run_pending()
-            self._ref_rate_last = msg.point.y * 1e3 if math.isfinite(msg.point.y) else 0.0
-            self._recent_refs[_stamp_ns(msg)] = self._ref_mm
-            self._ref_rate[_stamp_ns(msg)] = self._ref_rate_last
+            self._ref_rate = msg.point.y * 1e3 if math.isfinite(msg.point.y) else 0.0
+            self._recent_refs[_stamp_ns(msg)] = (self._ref_mm, self._ref_rate)
             if len(self._recent_refs) > REFERENCE_MEMORY:
-                self._ref_rate.pop(self._recent_refs.popitem(last=False)[0], None)
+                self._recent_refs.popitem(last=False)
 
     def _on_feedforward(self, msg: Vector3Stamped) -> None:
         if math.isfinite(msg.vector.x):
             self._ff_v = float(msg.vector.x)
             self._ff_rx_s = self._now_s()
-            self._ff_ref_mm = self._recent_refs.get(_stamp_ns(msg))
-            self._ff_ref_rate = self._ref_rate.get(_stamp_ns(msg))
+            self._ff_ref = self._recent_refs.get(_stamp_ns(msg))
             self._recent_ffs[_stamp_ns(msg)] = self._ff_v
             if len(self._recent_ffs) > REFERENCE_MEMORY:
                 self._recent_ffs.popitem(last=False)
@@ -345,15 +342,12 @@ class Controller(Node):
             return
         self._idle_reason = ""
         ref_mm = self._ref_mm
-        rate = self._ref_rate_last
+        rate = self._ref_rate
         ff_v = self._ff_v if ff_fresh else None
-        if ff_fresh and mode != "pid" and self._ff_ref_mm is not None:
-            ref_mm = self._ff_ref_mm
-            if self._ff_ref_rate is not None:
-                rate = self._ff_ref_rate
+        if ff_fresh and mode != "pid" and self._ff_ref is not None:
+            ref_mm, rate = self._ff_ref
         if target_ns is not None and target_ns in self._recent_refs:
-            ref_mm = self._recent_refs[target_ns]
-            rate = self._ref_rate.get(target_ns, rate)
+            ref_mm, rate = self._recent_refs[target_ns]
             if ff_fresh and target_ns in self._recent_ffs:
                 ff_v = self._recent_ffs[target_ns]
         y_mm = self._y_mm if self._y_mm is not None else ref_mm
@@ -415,7 +409,7 @@ class Controller(Node):
         return self._status("feedforward", DiagnosticStatus.OK, f"fresh, mode {mode}",
                             mode=mode, active_mode=self.hybrid.active_mode, age_s=age_txt,
                             feedforward_v=f"{self.hybrid.feedforward_v:.4f}",
-                            paired_with_reference=self._ff_ref_mm is not None)
+                            paired_with_reference=self._ff_ref is not None)
 
     def _diag_measurement(self) -> DiagnosticStatus:
         if self._idle_reason:
