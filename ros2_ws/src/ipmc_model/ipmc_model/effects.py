@@ -736,9 +736,6 @@ def dead_time_test(u, y, dt_s: float, *, max_delay_s: float = 0.5, output_lags: 
 def _grid(name, u, y, dt, rate_tau_max_s=np.inf):
     umax = float(np.max(np.abs(u)))
     ymax = float(np.max(np.abs(y)))
-    if name == "delay":
-        n = np.unique(np.round(np.geomspace(1, max(2, 0.5 / dt), 10)).astype(int))
-        return [{"delay_s": float(k * dt)} for k in n if k >= 1]
     if name == "dead_zone":
         return [{"width_v": f * umax} for f in (0.02, 0.04, 0.07, 0.1, 0.14, 0.2, 0.3)]
     if name == "asymmetry":
