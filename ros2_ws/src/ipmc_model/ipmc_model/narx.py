@@ -343,6 +343,28 @@ class NarxStepper:
         self._yb[0] = (float(y_measured_k) - self._model.y_mean_) / self._model.y_scale_
 
 
+def memory_poles(memory_taus_s, dt_s: float) -> np.ndarray:
+    """Discrete poles exp(-dt_s / tau) of memory channels (time constants and period in s)."""
+    taus = np.asarray(memory_taus_s, dtype=float)
+    if np.any(~np.isfinite(taus)) or np.any(taus <= 0.0):
+        raise ValueError(f"memory_taus_s must be positive time constants (s), got "
+                         f"{list(memory_taus_s)}")
+    if not (dt_s > 0.0 and np.isfinite(dt_s)):
+        raise ValueError(f"dt_s must be a positive sample period (s), got {dt_s!r}")
+    return np.exp(-dt_s / taus)
+
+
+def memory_channels(y: np.ndarray, memory_taus_s, dt_s: float) -> np.ndarray:
+    """Displacement (N,) -> inverse-model regressor channels: y itself when there are no memory
+    channels, else (N, 1 + J): y and y low-passed with each time constant (from rest)."""
+    if not len(memory_taus_s):
+        return y
+    from scipy.signal import lfilter
+
+    cols = [y] + [lfilter([1.0 - a], [1.0, -a], y) for a in memory_poles(memory_taus_s, dt_s)]
+    return np.column_stack(cols)
+
+
 class InverseNarxModel:
     """Inverse NARX model u_l = h(y_l..y_{l-n}, u_{l-1}..u_{l-m}, m_1,l..m_J,l) (paper Eq. 19).
 
@@ -389,22 +411,10 @@ class InverseNarxModel:
         self.narx_ = None
 
     def _memory_poles(self) -> np.ndarray:
-        taus = np.asarray(self.memory_taus_s, dtype=float)
-        if np.any(~np.isfinite(taus)) or np.any(taus <= 0.0):
-            raise ValueError(f"memory_taus_s must be positive time constants (s), got "
-                             f"{list(self.memory_taus_s)}")
-        if not (self.dt_s > 0.0 and np.isfinite(self.dt_s)):
-            raise ValueError(f"dt_s must be a positive sample period (s), got {self.dt_s!r}")
-        return np.exp(-self.dt_s / taus)
+        return memory_poles(self.memory_taus_s, self.dt_s)
 
     def _channels(self, y: np.ndarray) -> np.ndarray:
-        """Displacement (N,) -> regressor channels: y alone, or (N, 1 + J) with the memories."""
-        if not self.memory_taus_s:
-            return y
-        from scipy.signal import lfilter
-
-        cols = [y] + [lfilter([1.0 - a], [1.0, -a], y) for a in self._memory_poles()]
-        return np.column_stack(cols)
+        return memory_channels(y, self.memory_taus_s, self.dt_s)
 
     def fit(self, u, y) -> InverseNarxModel:
         """Fit on the plant's input ``u`` (V) and output ``y`` (mm); returns self."""

@@ -39,7 +39,7 @@ from .lssvm import (
     LSSVMRegressor,
     select_prototypes,
 )
-from .narx import InverseNarxModel, NarxModel, make_lssvm
+from .narx import InverseNarxModel, NarxModel, make_lssvm, memory_channels
 
 OBJECTIVES = ("free_run", "one_step")
 
@@ -269,7 +269,7 @@ def tune_lssvm_narx(
     score = _OBJECTIVE_FUNCS[objective]
     # the inverse model maps y -> u: it is scored on the voltage it predicts
     memory = {"memory_taus_s": tuple(memory_taus_s), "dt_s": dt_s}
-    x_all, t_all = (InverseNarxModel(**memory)._channels(y), u) if inverse else (u, y)
+    x_all, t_all = (memory_channels(y, memory_taus_s, dt_s), u) if inverse else (u, y)
 
     def skeleton(reg, step):
         if inverse:
