@@ -74,7 +74,12 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     from geometry_msgs.msg import PointStamped
     from rclpy.qos import QoSProfile, QoSReliabilityPolicy
 
-    from ipmc_driver.dataio import DISPLACEMENT_TYPE, VOLTAGE_TYPE, read_stamped_series
+    from ipmc_driver.dataio import (
+        DISPLACEMENT_TYPE,
+        VOLTAGE_TYPE,
+        read_stamped_series,
+        stamp_ns,
+    )
 
     from .bringup import Graph, NodeSpec, graph_specs
 
@@ -108,13 +113,12 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     first_ref, last_y = [], [0]
     qos = QoSProfile(depth=100, reliability=QoSReliabilityPolicy.RELIABLE)
 
-    def stamp_ns(msg):
-        return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
 
-    node.create_subscription(PointStamped, "/ipmc/reference",
-                             lambda m: first_ref or first_ref.append(stamp_ns(m)), qos)
+    node.create_subscription(
+        PointStamped, "/ipmc/reference",
+        lambda m: first_ref or first_ref.append(stamp_ns(m.header.stamp)), qos)
     node.create_subscription(PointStamped, "/ipmc/displacement",
-                             lambda m: last_y.__setitem__(0, stamp_ns(m)), qos)
+                             lambda m: last_y.__setitem__(0, stamp_ns(m.header.stamp)), qos)
     executor = rclpy.executors.SingleThreadedExecutor(context=context)
     executor.add_node(node)
 

@@ -134,6 +134,12 @@ def check_record(record: Record, *, source: str = "record", min_samples: int = M
     return record
 
 
+def stamp_ns(stamp) -> int:
+    """A ``builtin_interfaces/Time`` (anything with ``sec`` and ``nanosec``) as integer ns: the
+    exact key samples, commands and references are paired by."""
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
 def load_record(path, *, voltage_topic: str = VOLTAGE_TOPIC,
                 displacement_topic: str = DISPLACEMENT_TOPIC, min_samples: int = MIN_SAMPLES,
                 max_jitter: float = MAX_JITTER) -> Record:
@@ -269,7 +275,7 @@ def read_stamped_series(path, wanted: dict[str, str]) -> dict[str, dict[int, flo
             duplicates = 0
             for conn, _t_ns, raw in reader.messages(connections=conns):
                 msg = typestore.deserialize_cdr(raw, conn.msgtype)
-                stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+                stamp = stamp_ns(msg.header.stamp)
                 store = samples[conn.topic]
                 duplicates += stamp in store
                 store[stamp] = float(_SCALAR_FIELD[conn.msgtype](msg))

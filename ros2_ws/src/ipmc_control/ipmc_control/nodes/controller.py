@@ -55,6 +55,7 @@ from std_msgs.msg import Float64
 
 from ipmc_control.hybrid import HybridController, check_mode
 from ipmc_control.pid import PID, ControlParameterError
+from ipmc_driver.dataio import stamp_ns
 from ipmc_driver.node_runtime import run_node
 
 # Inputs: reliable and deep like their publishers (docs/interfaces.md), so that a lock-step
@@ -78,7 +79,7 @@ def _stamp_s(msg) -> float:
 
 
 def _stamp_ns(msg) -> int:
-    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+    return stamp_ns(msg.header.stamp)
 
 
 class Controller(Node):

@@ -30,6 +30,7 @@ from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReli
 from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import Float64
 
+from ipmc_driver.dataio import stamp_ns
 from ipmc_driver.node_runtime import run_node
 from ipmc_driver.plant import EFFECTS, IpmcPlant, load_plant_params
 
@@ -129,8 +130,7 @@ class SimPlant(Node):
             self.get_logger().warn("ignoring a non-finite command", throttle_duration_sec=1.0)
 
     def _on_command_stamped(self, msg: Vector3Stamped) -> None:
-        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        if stamp_ns == self._sample_ns and math.isfinite(msg.vector.x):
+        if stamp_ns(msg.header.stamp) == self._sample_ns and math.isfinite(msg.vector.x):
             self._answer_v = float(msg.vector.x)
 
     def _on_tick(self) -> None:
@@ -161,7 +161,7 @@ class SimPlant(Node):
     def _publish_sample(self, u_applied_v: float, y_mm: float) -> None:
         # plant.t_s is already the next sample's time: this sample was taken one period earlier.
         stamp = to_time_msg(self._t0 + self.plant.t_s - self.dt_s)
-        self._sample_ns = stamp.sec * 1_000_000_000 + stamp.nanosec
+        self._sample_ns = stamp_ns(stamp)
         self._answer_v = None
         if self.pub_clock is not None:
             self.pub_clock.publish(ClockMsg(clock=stamp))

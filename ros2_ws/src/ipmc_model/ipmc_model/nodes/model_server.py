@@ -45,6 +45,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 from std_srvs.srv import Trigger
 
+from ipmc_driver.dataio import stamp_ns
 from ipmc_driver.node_runtime import run_node
 from ipmc_model.narx import InverseNarxModel, NarxModel
 from ipmc_model.persistence import load_model
@@ -119,7 +120,7 @@ def load_model_set(model_file: str, inverse_model_file: str = ""):
 
 
 def _stamp_ns(msg) -> int:
-    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+    return stamp_ns(msg.header.stamp)
 
 
 def _describe(model) -> str:
