@@ -2,10 +2,16 @@
 
 The loop is the one the node graph runs, sample by sample at ``rate_hz``:
 
-    r_k            reference (mm) at t_k
+    r_k            reference (mm) for the sample y_k
     u_ff,k         inverse model fed the reference: step(r_k)          (modes inverse, hybrid)
-    u_k            hybrid law on r_k and the latest measurement y_{k-1}, clipped to 3 V
+    e_{k-1}        tracking error of the latest measurement, r_{k-1} - y_{k-1} (r_0 - y_rest at
+                   k = 0): the PID compares the reference and the measurement of one instant
+    u_k            u_ff,k + PID(e_{k-1}), clipped to 3 V
     y_k            plant response to u_k held for one period (measured, mm)
+
+The feedforward looks one sample ahead (it aims at r_k, which u_k produces); the PID does not:
+comparing r_k with y_{k-1} would add K (r_k - r_{k-1}) to every command, a lead the feedforward
+already provides (0.025 mm of error on the random sine even with a perfect feedforward).
 
 The feedforward is a filter of the reference alone (the inverse model's history holds the
 desired displacements and its own voltages limited to 3 V: the model server's
@@ -127,8 +133,9 @@ def run_tracking(reference: Reference, duration_s: float, mode: str, *, inverse=
         if ff_stepper is not None:
             ff[k] = max(-3.0, min(3.0, ff_stepper.step(r[k])))
             ff_stepper.record_applied(ff[k])  # the voltage history holds what can be applied
-        cmd = ctrl.compute_command(r[k], y_last, dt, ff[k] if ff_stepper is not None else None,
-                                   None if r_rate is None else r_rate[k])
+        j = max(k - 1, 0)   # the instant of y_last (the reference's first sample at rest)
+        cmd = ctrl.compute_command(r[j], y_last, dt, ff[k] if ff_stepper is not None else None,
+                                   None if r_rate is None else r_rate[j])
         u[k], y[k] = plant.step(cmd)
         y_last = y[k]
     return TrackResult(t_s=t, reference_mm=r, y_mm=y, u_v=u, feedforward_v=ff)

@@ -29,7 +29,9 @@ sample with its own command by it), and ``/diagnostics``.
 - With ``trigger:=measurement`` the command computed on the sample stamped ``t`` is applied
   over the next period, so it aims at the reference stamped ``t + 1/rate_hz`` when that sample
   is known (the ``reference`` node publishes ahead with ``preview_s``), with the feedforward
-  answering that same reference: the graph then runs the in-process loop of
+  answering that same reference, while the PID's error uses the reference stamped ``t`` (the
+  measurement's own instant; the first sample's reference when there is none): the graph then
+  runs the in-process loop of
   ``ipmc_control.experiment`` sample for sample. When that reference sample or its feedforward
   has not arrived yet (a busy reference node or model_server) the step waits for them, at most
   ``pair_wait_s`` of wall time (lock-step ``sim_plant`` waits for the command meanwhile); steps
@@ -351,6 +353,9 @@ class Controller(Node):
             ref_mm, rate = self._recent_refs[target_ns]
             if ff_fresh and target_ns in self._recent_ffs:
                 ff_v = self._recent_ffs[target_ns]
+            # The PID compares the measurement with the reference of its own instant; only the
+            # feedforward looks ahead (ipmc_control.experiment: e_{k-1} = r_{k-1} - y_{k-1}).
+            ref_mm, rate = self._recent_refs.get(self._answer_ns, (ref_mm, rate))
         y_mm = self._y_mm if self._y_mm is not None else ref_mm
         u = self.hybrid.compute_command(ref_mm, y_mm, dt, ff_v,
                                         rate if self.use_reference_rate else None)
