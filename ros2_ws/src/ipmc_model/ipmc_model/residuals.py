@@ -32,6 +32,14 @@ from ipmc_driver.validation import as_signal, same_length
 MONITOR_TESTS = ("whiteness", "drift", "both")
 #: Two-sided 95 % quantile of the standard normal distribution.
 Z95 = float(stats.norm.ppf(0.975))
+#: Holds (:func:`find_holds`): the input within this share of its range of the hold's start.
+HOLD_TOL_FRACTION = 0.005
+#: Start of a hold skipped by :func:`hold_drift_test` (s): the simulated IPMC's fast response
+#: (charging, back-relaxation tau 0.46 s) has settled to < 0.01 mm 3 s after a 4 V step.
+HOLD_SKIP_S = 3.0
+#: Smallest share of the predicted within-hold drift (lower confidence bound) that counts as
+#: creep in time (:func:`hold_drift_test`).
+HOLD_BETA_MIN = 0.25
 
 
 def _xcorr(a: np.ndarray, b: np.ndarray, max_lag: int) -> np.ndarray:
@@ -217,6 +225,98 @@ def whiteness_summary(e, u=None, max_lag: int = 25) -> dict:
     out["ljung_box_q"], out["ljung_box_p"] = lb["q"], lb["p_value"]
     if u is not None:
         out["ccf_outside"] = ccf(u, e, max_lag).fraction_outside(skip_zero=False)
+    return out
+
+
+def find_holds(u, dt_s: float, min_s: float, tol_fraction: float = HOLD_TOL_FRACTION
+               ) -> list[tuple[int, int]]:
+    """Input holds: maximal runs [start, stop) (samples) in which the input ``u`` (V) stays within
+    ``tol_fraction`` of its range of the run's first value, at least ``min_s`` seconds long.
+
+    The tolerance is small on purpose: the IPMC answers a 0.09 V step with a 0.25 mm transient,
+    so a loose tolerance would call a small step a hold; a sine riding on a step is no hold either
+    (it keeps moving the Bouc-Wen hysteresis, which then settles in time: docs/diagnose.md).
+    """
+    u = as_signal("u", u)
+    if not dt_s > 0:
+        raise ValueError(f"dt_s must be > 0, got {dt_s}")
+    tol = float(tol_fraction) * float(np.ptp(u))
+    n_min = max(1, int(np.ceil(min_s / dt_s - 1e-9)))
+    holds, start = [], 0
+    for k in range(1, u.size + 1):
+        if k == u.size or abs(u[k] - u[start]) > tol:
+            if k - start >= n_min:
+                holds.append((start, k))
+            start = k
+    return holds
+
+
+def hold_drift_test(r, x, u, dt_s: float, *, skip_s: float = HOLD_SKIP_S,
+                    min_use_s: float = 1.0, beta_min: float = HOLD_BETA_MIN,
+                    alpha: float = 0.05, min_holds: int = 3) -> dict:
+    """Does the residual ``r`` (mm) keep drifting during input holds as the signal ``x`` (mm)
+    predicts? The time-behaviour evidence of creep.
+
+    During each hold of ``u`` (:func:`find_holds`), from ``skip_s`` after its start (the fast
+    dynamics have settled) to its end, r and x are taken relative to their hold means, and
+    r = beta x + e is fitted by least squares over all holds. A per-hold constant absorbs what
+    path memory (rate-independent hysteresis) leaves: a hold-dependent offset, but no drift in
+    time. beta is the share of the predicted within-hold drift that is in the residual (1: all of
+    it; 0: the residual stays flat). Its standard error is cluster-robust by hold (residuals
+    within a hold are autocorrelated, holds nearly independent), the 1 - ``alpha`` lower
+    confidence bound uses Student's t with G - 1 degrees of freedom (G holds).
+
+    Significant: at least ``min_holds`` usable holds (>= ``min_use_s`` of finite r after the
+    skip) and the lower bound of beta above ``beta_min``: statistical significance alone is not
+    enough on a nearly noise-free residual (the clean plant's last hundredths of a millimetre of
+    settling are "significant" against 0).
+
+    Parameters
+    ----------
+    r : array_like, shape (N,)
+        Residual (mm); NaN samples are skipped.
+    x : array_like, shape (N,)
+        Predicted drift, e.g. the fitted creep state (mm) on the same samples.
+    u : array_like, shape (N,)
+        Input (V).
+    dt_s : float
+        Sample period (s).
+
+    Returns
+    -------
+    dict
+        ``holds`` (usable G), ``beta``, ``se``, ``lower`` (bound), ``significant``, ``text``.
+    """
+    r = as_signal("r", r, allow_nan=True)
+    x = as_signal("x", x, allow_nan=True)
+    u = as_signal("u", u)
+    if not (r.shape == x.shape == u.shape):
+        raise ValueError(f"r, x, u must have the same shape, got {r.shape}, {x.shape}, {u.shape}")
+    skip = int(round(skip_s / dt_s))
+    blocks = []
+    for s, e in find_holds(u, dt_s, skip_s + min_use_s):
+        idx = np.arange(s + skip, e)
+        idx = idx[np.isfinite(r[idx]) & np.isfinite(x[idx])]
+        if idx.size * dt_s < min_use_s:
+            continue
+        blocks.append((r[idx] - r[idx].mean(), x[idx] - x[idx].mean()))
+    G = len(blocks)
+    out = {"holds": G, "beta": float("nan"), "se": float("nan"), "lower": float("nan"),
+           "significant": False, "skip_s": float(skip_s), "beta_min": float(beta_min)}
+    sxx = sum(float(bx @ bx) for _, bx in blocks)
+    if G < min_holds or sxx <= 0.0:
+        out["text"] = (f"drift during holds: {G} usable input hold(s) (constant input for >= "
+                       f"{skip_s + min_use_s:g} s), needs {min_holds}: creep cannot be told "
+                       "from path memory without holds")
+        return out
+    beta = sum(float(bx @ br) for br, bx in blocks) / sxx
+    meat = sum(float(bx @ (br - beta * bx)) ** 2 for br, bx in blocks)
+    se = float(np.sqrt(meat * G / (G - 1))) / sxx
+    lower = beta - float(stats.t.ppf(1.0 - alpha, G - 1)) * se
+    out.update(beta=beta, se=se, lower=lower, significant=bool(lower > beta_min))
+    out["text"] = (f"drift during {G} input holds (after {skip_s:g} s): residual follows "
+                   f"{beta:.2f} +- {se:.2f} of the predicted drift, {100 * (1 - alpha):.0f} % "
+                   f"lower bound {lower:.2f}, needs > {beta_min:g}")
     return out
 
 

@@ -14,6 +14,8 @@ from ipmc_model.residuals import (
     acf,
     ccf,
     correlation_test,
+    find_holds,
+    hold_drift_test,
     ljung_box,
     low_frequency_share,
     spectrum,
@@ -200,3 +202,64 @@ def test_monitor_drift_test_needs_reference_first():
     assert st.level == 2 and "mean moved" in st.message
     with pytest.raises(ValueError, match="test"):
         ResidualMonitor(test="nope")
+
+
+# -- hold drift (creep in time vs path memory) --
+def _hold_record(seconds=240.0, dt=0.02, seed=0):
+    """Random steps (holds 3-10 s), a hysteresis-like residual (per-hold offset set by the path:
+    the direction of the last step, plus a fast 0.5 s transient after each step, plus noise)
+    and a creep state (tau 10 s, -0.3 mm/V)."""
+    from scipy.signal import lfilter
+
+    from ipmc_driver.signals import random_steps
+
+    _, u = random_steps(seconds, 1 / dt, 2.5, (3.0, 10.0), seed=seed)
+    rng = np.random.default_rng(seed)
+    jumps = np.flatnonzero(np.diff(u)) + 1
+    path = np.zeros_like(u)
+    since = np.zeros_like(u)
+    start, prev = 0, 0.0
+    for j in list(jumps) + [u.size]:
+        step = u[start] - prev
+        path[start:j] = 0.1 * np.sign(step)  # ascending / descending branch
+        since[start:j] = 0.3 * step * np.exp(-np.arange(j - start) * dt / 0.5)
+        prev, start = u[start], j
+    a = np.exp(-dt / 10.0)
+    creep = lfilter([0.0, (1 - a) * -0.3], [1.0, -a], u)
+    noise = 0.005 * rng.standard_normal(u.size)
+    return u, dt, path + since + noise, creep
+
+
+def test_find_holds_splits_at_small_steps_and_skips_a_riding_sine():
+    dt = 0.02
+    u = np.r_[np.full(250, 1.0), np.full(250, 1.09), np.full(100, -2.0)]
+    assert find_holds(u, dt, 4.0) == [(0, 250), (250, 500)]
+    assert find_holds(u, dt, 5.5) == []
+    t = np.arange(1000) * dt
+    assert find_holds(1.0 + 0.3 * np.sin(2 * np.pi * 0.5 * t), dt, 1.0) == []
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_hold_drift_sees_creep_but_not_path_memory(seed):
+    u, dt, hysteresis, creep = _hold_record(seed=seed)
+    # path memory and a fast transient: what a creep candidate imitates, no drift in a hold
+    fitted = creep * 1.5  # a candidate that would explain the offsets with a larger creep
+    t0 = hold_drift_test(hysteresis, fitted, u, dt)
+    assert t0["holds"] >= 10
+    assert not t0["significant"] and abs(t0["beta"]) < 0.2
+    # the same plus a real creep: the residual drifts during holds as the creep predicts
+    t1 = hold_drift_test(hysteresis + creep, creep, u, dt)
+    assert t1["significant"]
+    assert t1["beta"] == pytest.approx(1.0, abs=0.35)
+    # why the start of each hold is skipped: unskipped, the fast transient passes as drift
+    assert hold_drift_test(hysteresis, fitted, u, dt, skip_s=0.0)["significant"]
+
+
+def test_hold_drift_without_holds_says_so():
+    t = np.arange(3000) * 0.02
+    u = 2.0 * np.sin(2 * np.pi * 0.3 * t)
+    res = hold_drift_test(0.01 * u, u, u, 0.02)
+    assert res["holds"] == 0 and not res["significant"]
+    assert "cannot be told" in res["text"]
+    with pytest.raises(ValueError, match="same shape"):
+        hold_drift_test(u[:10], u, u, 0.02)
