@@ -627,7 +627,10 @@ def _fit_creep(model, narx, u, y, t, iterations):
     minutes, gain by least squares; an intercept and the input low-passed at the baseline's
     memory, its own misfit at that time scale, are nuisance terms, not kept) is fitted on
     y minus the out-of-fold prediction of a baseline fitted on y minus the current creep.
-    The baseline is then refitted on the data with the creep removed."""
+    The baseline is then refitted on the data with the creep removed. The first pass's
+    cross-fitted residual (that of the current structure, mm) is kept on the effect as
+    ``fit_residual_`` for the time-behaviour evidence (:func:`~ipmc_model.residuals.
+    hold_drift_test`)."""
     dt = model.dt_s
     mem = max(model.max_lag_ * dt, 2 * dt)
     nuis = _creep_basis(u, dt, mem)
@@ -638,6 +641,8 @@ def _fit_creep(model, narx, u, y, t, iterations):
     for _ in range(int(iterations) + 1):
         c_now = eff.creep_state(u, dt) if eff is not None else 0.0
         r = cross_fitted_residual(cur, narx, u, y) + c_now  # y - out-of-fold baseline part
+        if eff is None:
+            first_residual = r.copy()
         ok = np.isfinite(r)
         best = None
         for tau, xb in zip(taus, bases, strict=True):
@@ -648,6 +653,7 @@ def _fit_creep(model, narx, u, y, t, iterations):
                 best = (sse, tau, coef[0])
         eff = Effect("creep", tau_s=float(best[1]), gain_mm_per_v=float(best[2]))
         cur = AugmentedModel(model.baseline, model.effects + [eff], dt)
+    eff.fit_residual_ = first_residual
     return model.refit(narx, u, y, model.effects + [eff]), eff
 
 
