@@ -1,7 +1,7 @@
 """Benchmark of ``ipmc diagnose``: wall time on 30 000 samples, the plant's effects, and the
 third-party data (Bouc-Wen, piezo). Prints figures; not part of the pass/fail suite.
 
-    .venv/bin/python benchmarks/bench_diagnose.py [timing|effects [LABEL_PREFIX]|thirdparty|all]
+    .venv/bin/python benchmarks/bench_diagnose.py [timing|effects [LABEL_PREFIX...]|thirdparty|all]
 
 Third-party records are converted to t,u,y CSV in a temporary folder (the CLI reads t,u,y CSV
 or a bag; the conversion is done here, not taught to the loader) (Bouc-Wen: u in N,
@@ -28,9 +28,13 @@ DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 RATE = 50.0
 
 
-def plant_record(effects, seconds, seed, rate=RATE):
+def plant_record(effects, seconds, seed, rate=RATE, holds=False):
+    """0.6 x random sine + random steps (1.5 V, 3-10 s); ``holds``: the sine is off during every
+    other step (true input holds, which the creep evidence needs)."""
     _, us = random_sine(seconds, rate, 2.5, (0.05, 1.0), 8, seed=seed + 2)
     _, st = random_steps(seconds, rate, 1.5, (3.0, 10.0), seed=seed + 3)
+    if holds:
+        us = us * (np.cumsum(np.r_[0, np.diff(st) != 0]) % 2 == 0)
     u = np.clip(0.6 * us + st, -3, 3)
     run = IpmcPlant(effects=effects, seed=seed, dt_s=1 / rate).run(u)
     return Record(run.t_s, u, run.y_mm)
@@ -69,6 +73,11 @@ CASES = [
     ("dead_zone default 0.3 V", {"dead_zone": {}}, 90.0),
     ("saturation 1.5 mm", {"saturation": {"limit_mm": 1.5}}, 90.0),
     ("saturation default 3 mm", {"saturation": {}}, 90.0),
+    # input with true holds (the sine off during every other step): creep evidence in time
+    ("holds: none", {}, 90.0, True),
+    ("holds: creep tau 12 s, -0.6 mm/V, 120 s", {"creep": {"tau_s": 12.0,
+                                                           "gain_mm_per_v": -0.6}}, 120.0, True),
+    ("holds: creep default tau 20 s, -0.12 mm/V, 300 s", {"creep": {}}, 300.0, True),
 ]
 
 
@@ -76,12 +85,13 @@ def effects(tmp, seeds=(0, 1, 2), only=None):
     print("| plant effect (not told) | seconds | seed | found | free-run RMSE before (mm) | "
           "after (mm) | wall (s) |")
     print("|---|---|---|---|---|---|---|")
-    for label, eff, seconds in CASES:
+    for label, eff, seconds, *holds in CASES:
         if only and not label.startswith(only):
             continue
         for seed in seeds:
-            stem = f"{label.split()[0]}{len(label)}_{seed}"
-            p = save_csv(plant_record(eff, seconds, seed), Path(tmp) / f"{stem}.csv")
+            stem = f"{label.split()[0].strip(':')}{len(label)}_{seed}"
+            p = save_csv(plant_record(eff, seconds, seed, holds=bool(holds and holds[0])),
+                         Path(tmp) / f"{stem}.csv")
             code, sec, s = run_cli(p, Path(tmp) / stem)
             print(f"| {label} | {seconds:.0f} | {seed} | "
                   f"{', '.join(s.get('effects_found', [])) or 'none'} | "
@@ -121,6 +131,6 @@ if __name__ == "__main__":
         if what in ("timing", "all"):
             timing(tmp)
         if what in ("effects", "all"):
-            effects(tmp, only=sys.argv[2] if len(sys.argv) > 2 else None)
+            effects(tmp, only=tuple(sys.argv[2:]) or None)
         if what in ("thirdparty", "all"):
             thirdparty(tmp)
