@@ -1,0 +1,298 @@
+"""Feedforward by inverting a FORWARD NARX model online, one sample at a time (pure core).
+
+At each sample k the desired tip displacement r_k (mm) arrives and the feedforward picks the
+voltage u_k in [-u_limit_v, u_limit_v] that makes the forward model's *free-run* prediction
+follow it:
+
+    u_k = argmin_u  mean_j (y_hat_{k+j}(u) - r_hat_{k+j})^2 + smoothness * (u - u_{k-1})^2,
+          j = 0 .. horizon_samples - 1, u held over the horizon,
+
+then advances the model one sample with u_k (its history holds its own predictions, never a
+measurement, so the feedforward is a filter of the reference alone, like the inverse model it
+replaces). ``r_hat`` is the reference extrapolated linearly from its last two samples (the
+stepper sees r_k only).
+
+Which forward model. The forward model's inputs are voltage channels: optionally the voltage
+itself, then the voltage low-passed with each time constant of ``input_memory_taus_s``
+(``m_j,k = a_j m_j,k-1 + (1 - a_j) u_k``, ``a_j = exp(-dt_s / tau_j)``; build them for fitting
+with :func:`voltage_channels`). Why: the IPMC's tip depends on the applied voltage through its
+double-layer charging (tau ~ 0.3 s) and back-relaxation (tau ~ 0.46 s); low-passed voltages are
+those states, and they see *every* past voltage. A NARX with voltage lags spaced s > 1 samples
+apart sees only every s-th voltage, so its inversion is free to alternate the voltage between
+samples (it rang at the Nyquist frequency, 3 V peak, in the experiment), and a raw-voltage
+channel lets the fit learn a spurious direct u_k -> y_k gain that makes the one-step
+inversion ring as well. ``include_voltage=False`` with taus (0.3, 0.5) s and no output lags
+(an NFIR in the low-passed voltages) is what worked: see scripts/forward_inversion_experiment.py.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from .errors import check_fitted
+from .narx import NarxModel, memory_channels, memory_poles
+
+
+def voltage_channels(u_v, input_memory_taus_s: Sequence[float], dt_s: float = 0.01, *,
+                     include_voltage: bool = True) -> np.ndarray:
+    """Forward-model input channels from a voltage record.
+
+    Parameters
+    ----------
+    u_v : array_like, shape (N,)
+        Applied voltage, V, from rest (the filters start at 0 V).
+    input_memory_taus_s : sequence of float
+        Time constants of the low-passed voltage channels, s.
+    dt_s : float
+        Sample period, s.
+    include_voltage : bool
+        Put the voltage itself first.
+
+    Returns
+    -------
+    ndarray, shape (N, include_voltage + len(input_memory_taus_s))
+        V.
+    """
+    u = np.asarray(u_v, dtype=float)
+    if u.ndim != 1 or not np.all(np.isfinite(u)):
+        raise ValueError(f"u_v must be a finite 1-D voltage record (V), got shape {u.shape}")
+    if not include_voltage and not len(input_memory_taus_s):
+        raise ValueError("no channel: give input_memory_taus_s or include_voltage=True")
+    cols = memory_channels(u, tuple(input_memory_taus_s), dt_s)
+    cols = cols.reshape(u.size, -1)
+    return cols if include_voltage else cols[:, 1:]
+
+
+class ForwardInversionFeedforward:
+    """Feedforward u_k (V) for a desired displacement r_k (mm) by inverting a forward model.
+
+    Parameters
+    ----------
+    forward_model : fitted NarxModel
+        y_k (mm) from its voltage channels (see :func:`voltage_channels`) and, optionally, its
+        own past outputs. Its regressor should be a kernel expansion (LSSVM: fast batched path);
+        any regressor with ``predict(X)`` works.
+    input_memory_taus_s : sequence of float
+        The time constants (s) the model's low-passed voltage channels were built with.
+    include_voltage : bool
+        Whether the model's first channel is the voltage itself.
+    dt_s : float
+        Sample period, s (the model's and the loop's).
+    u_limit_v : float
+        Voltages are searched in [-u_limit_v, u_limit_v], V (the H-bridge's 3 V).
+    smoothness_mm2_per_v2 : float
+        Weight of (u_k - u_{k-1})^2 against the squared tracking error, mm^2 / V^2 (0: none).
+    horizon_samples : int
+        Samples over which the held voltage is scored (1: one-step inversion).
+    grid_points, refine_points : int
+        The minimisation: a grid over the whole voltage range, then a finer grid across the
+        best coarse cell and a parabolic step. Why a grid: the kernel model's cost can have
+        several minima in u; a grid finds the global one at a fixed, predictable cost.
+
+    Notes
+    -----
+    Cost per step: (grid_points + refine_points) * horizon_samples kernel rows, batched, plus
+    one to advance the model.
+    """
+
+    def __init__(self, forward_model: NarxModel, *, input_memory_taus_s: Sequence[float] = (),
+                 include_voltage: bool = True, dt_s: float = 0.01, u_limit_v: float = 3.0,
+                 smoothness_mm2_per_v2: float = 0.0, horizon_samples: int = 1,
+                 grid_points: int = 25, refine_points: int = 21):
+        check_fitted(forward_model, "regressor_")
+        if not isinstance(forward_model, NarxModel):
+            raise ValueError(f"forward_model must be a fitted NarxModel, got "
+                             f"{type(forward_model).__name__}")
+        self.forward_model = forward_model
+        self.input_memory_taus_s = tuple(float(t) for t in input_memory_taus_s)
+        self.include_voltage = bool(include_voltage)
+        self.dt_s = float(dt_s)
+        self.poles_ = (memory_poles(self.input_memory_taus_s, self.dt_s)
+                       if self.input_memory_taus_s else np.zeros(0))
+        n_channels = int(self.include_voltage) + self.poles_.size
+        if n_channels == 0:
+            raise ValueError("no voltage channel: give input_memory_taus_s or "
+                             "include_voltage=True")
+        if forward_model.n_inputs_ != n_channels:
+            raise ValueError(
+                f"the forward model has {forward_model.n_inputs_} input channel(s) but "
+                f"include_voltage={self.include_voltage} and {self.poles_.size} memory "
+                f"time constant(s) make {n_channels}")
+        if not (np.isfinite(u_limit_v) and u_limit_v > 0.0):
+            raise ValueError(f"u_limit_v must be a positive voltage (V), got {u_limit_v!r}")
+        self.u_limit_v = float(u_limit_v)
+        if not (np.isfinite(smoothness_mm2_per_v2) and smoothness_mm2_per_v2 >= 0.0):
+            raise ValueError(f"smoothness_mm2_per_v2 must be >= 0, got {smoothness_mm2_per_v2!r}")
+        self.smoothness_mm2_per_v2 = float(smoothness_mm2_per_v2)
+        for name, value, low in (("horizon_samples", horizon_samples, 1),
+                                 ("grid_points", grid_points, 3),
+                                 ("refine_points", refine_points, 3)):
+            if int(value) != value or value < low:
+                raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+        self.horizon_samples = int(horizon_samples)
+        self.grid_points = int(grid_points)
+        self.refine_points = int(refine_points)
+
+    def stepper(self) -> ForwardInversionStepper:
+        """A fresh sample-by-sample feedforward from rest; see :class:`ForwardInversionStepper`."""
+        return ForwardInversionStepper(self)
+
+    def get_params(self) -> dict:
+        return {
+            "input_memory_taus_s": list(self.input_memory_taus_s),
+            "include_voltage": self.include_voltage,
+            "dt_s": self.dt_s,
+            "u_limit_v": self.u_limit_v,
+            "smoothness_mm2_per_v2": self.smoothness_mm2_per_v2,
+            "horizon_samples": self.horizon_samples,
+            "grid_points": self.grid_points,
+            "refine_points": self.refine_points,
+        }
+
+
+class ForwardInversionStepper:
+    """The feedforward one sample at a time: ``step(r_mm) -> u_v``, from rest.
+
+    State: the model's voltage-channel history, its low-pass filter states and its own past
+    predicted outputs. ``record_applied(u_v)`` replaces the last voltage by the one really
+    applied (e.g. limited elsewhere) and recomputes that sample's state.
+
+    Attributes
+    ----------
+    predicted_mm : float
+        The forward model's prediction of the tip for the last returned voltage, mm.
+    """
+
+    def __init__(self, ff: ForwardInversionFeedforward):
+        m = ff.forward_model
+        self._ff = ff
+        self._m = m
+        reg = m.regressor_
+        self._centers = getattr(reg, "centers_", None)
+        if self._centers is not None:
+            self._coef = np.asarray(reg.coef_, dtype=float)
+            self._b = float(reg.intercept_)
+            self._gamma = 1.0 / (2.0 * float(reg.sigma_) ** 2)
+            self._csq = (self._centers * self._centers).sum(1)
+        self._a = ff.poles_
+        self._raw = int(ff.include_voltage)
+        self._u_mean = np.asarray(m.u_mean_, dtype=float)
+        self._u_scale = np.asarray(m.u_scale_, dtype=float)
+        self._u_delays = list(m.in_delays_)
+        self._y_delays = m.out_delays_
+        self._depth_u = 1 + max(int(d.max()) for d in self._u_delays)
+        self._depth_y = int(self._y_delays.max()) if self._y_delays.size else 1
+        self._y_rest = (0.0 - m.y_mean_) / m.y_scale_
+        self._u_grid = np.linspace(-ff.u_limit_v, ff.u_limit_v, ff.grid_points)
+        self._j = np.arange(ff.horizon_samples, dtype=float)
+        # Newest first: _ub[i] = channels of u_{k-1-i} (V), _yb[i] = y_{k-1-i} (scaled).
+        self._ub = np.zeros((self._depth_u, m.n_inputs_))
+        self._yb = np.full(self._depth_y, self._y_rest)
+        self._mem = np.zeros(self._a.size)
+        self._r_prev: float | None = None
+        self._u_prev = 0.0
+        self._saved = None
+        self.predicted_mm = 0.0
+
+    # -- the model -----------------------------------------------------------------------------
+    def _f(self, X: np.ndarray) -> np.ndarray:
+        """Scaled model output for scaled rows X (G, d)."""
+        if self._centers is None:
+            return np.asarray(self._m.regressor_.predict(X), dtype=float)
+        d2 = self._csq[None, :] - 2.0 * (X @ self._centers.T) + (X * X).sum(1)[:, None]
+        return np.exp(-self._gamma * d2) @ self._coef + self._b
+
+    def _rows(self, ub: np.ndarray, yb: np.ndarray, o: int) -> np.ndarray:
+        """Scaled regressor rows; column o + d of ub / yb holds the sample d steps back."""
+        cols = [(ub[:, o + d, c] - self._u_mean[c]) / self._u_scale[c]
+                for c, ds in enumerate(self._u_delays) for d in ds]
+        if self._y_delays.size:
+            cols.append(yb[:, o + self._y_delays])
+        return np.column_stack(cols)
+
+    def _channels(self, u: np.ndarray, steps: int) -> np.ndarray:
+        """Channel values (G, c) after holding voltages u (G,) for ``steps`` samples."""
+        out = np.empty((u.size, self._m.n_inputs_))
+        if self._raw:
+            out[:, 0] = u
+        if self._a.size:
+            an = self._a ** steps
+            out[:, self._raw:] = an * self._mem + (1.0 - an) * u[:, None]
+        return out
+
+    def _simulate(self, u: np.ndarray) -> np.ndarray:
+        """Predicted tips (G, horizon), mm, for candidate voltages u (G,) held over it."""
+        H = self._ff.horizon_samples
+        G = u.size
+        ub = np.empty((G, H + self._depth_u, self._m.n_inputs_))
+        ub[:, H:] = self._ub
+        yb = np.empty((G, H + self._depth_y))
+        yb[:, H:] = self._yb
+        y = np.empty((G, H))
+        for j in range(H):
+            o = H - 1 - j  # sample k + j sits in column o
+            ub[:, o] = self._channels(u, j + 1)
+            zk = self._f(self._rows(ub, yb, o))
+            yb[:, o] = zk
+            y[:, j] = zk * self._m.y_scale_ + self._m.y_mean_
+        return y
+
+    def _cost(self, u: np.ndarray, target: np.ndarray) -> np.ndarray:
+        err = self._simulate(u) - target
+        du = u - self._u_prev
+        return np.mean(err * err, axis=1) + self._ff.smoothness_mm2_per_v2 * du * du
+
+    # -- the loop ------------------------------------------------------------------------------
+    def step(self, r_mm: float) -> float:
+        """Desired displacement r_k (mm) -> feedforward voltage u_k (V), within the limit."""
+        r = float(r_mm)
+        if not np.isfinite(r):
+            raise ValueError(f"r_mm must be a finite displacement (mm), got {r_mm!r}")
+        slope = 0.0 if self._r_prev is None else r - self._r_prev
+        self._r_prev = r
+        target = r + slope * self._j
+        grid = self._u_grid
+        i = int(np.argmin(self._cost(grid, target)))
+        h = grid[1] - grid[0]
+        fine = np.linspace(max(grid[0], grid[i] - h), min(grid[-1], grid[i] + h),
+                           self._ff.refine_points)
+        J = self._cost(fine, target)
+        i = int(np.argmin(J))
+        u = float(fine[i])
+        if 0 < i < fine.size - 1:  # parabola through the best three points
+            curv = J[i - 1] - 2.0 * J[i] + J[i + 1]
+            if curv > 0.0:
+                u += 0.5 * (J[i - 1] - J[i + 1]) / curv * (fine[1] - fine[0])
+        u = min(self._ff.u_limit_v, max(-self._ff.u_limit_v, u))
+        self._saved = (self._ub.copy(), self._yb.copy(), self._mem.copy(), self._u_prev)
+        self._advance(u)
+        return u
+
+    def _advance(self, u: float) -> None:
+        if self._a.size:
+            self._mem = self._a * self._mem + (1.0 - self._a) * u
+        self._ub[1:] = self._ub[:-1]
+        if self._raw:
+            self._ub[0, 0] = u
+        self._ub[0, self._raw:] = self._mem
+        yb = np.concatenate(([0.0], self._yb))[None, :]  # column d = y_{k-d}
+        zk = float(self._f(self._rows(self._ub[None], yb, 0))[0])
+        self._yb[1:] = self._yb[:-1]
+        self._yb[0] = zk
+        self._u_prev = u
+        self.predicted_mm = zk * self._m.y_scale_ + self._m.y_mean_
+
+    def record_applied(self, u_applied_v: float) -> None:
+        """Replace the last returned voltage in the history by the applied one (V)."""
+        u = float(u_applied_v)
+        if not np.isfinite(u):
+            raise ValueError(f"u_applied_v must be a finite voltage (V), got {u_applied_v!r}")
+        if self._saved is None:
+            raise ValueError("record_applied before any step")
+        if u == self._u_prev:
+            return
+        ub, yb, mem, u_prev = self._saved
+        self._ub[:], self._yb[:], self._mem, self._u_prev = ub, yb, mem.copy(), u_prev
+        self._advance(u)

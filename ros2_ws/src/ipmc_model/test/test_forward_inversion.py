@@ -1,0 +1,134 @@
+"""ForwardInversionFeedforward: inverts a known forward system, respects the voltage limit,
+refuses bad input."""
+
+import numpy as np
+import pytest
+
+from ipmc_model.errors import NotFittedError
+from ipmc_model.forward_inversion import ForwardInversionFeedforward, voltage_channels
+from ipmc_model.lssvm import LSSVMRegressor
+from ipmc_model.narx import NarxModel
+
+DT_S = 0.01
+TAUS_S = (0.3, 0.5)
+
+
+class LinearRegressor:
+    """Least squares with intercept: the model of a linear system is then exact."""
+
+    def fit(self, X, y):
+        A = np.column_stack([X, np.ones(len(X))])
+        self.w_ = np.linalg.lstsq(A, y, rcond=None)[0]
+        return self
+
+    def predict(self, X):
+        return np.column_stack([X, np.ones(len(X))]) @ self.w_
+
+
+def linear_plant(u_v):
+    """Synthetic tip (mm): a charging state minus a relaxation state, 1.2 mm/V at DC."""
+    ch = voltage_channels(u_v, TAUS_S, DT_S, include_voltage=False)
+    return 2.0 * ch[:, 0] - 0.8 * ch[:, 1]
+
+
+def smooth_voltage(n, seed, amplitude_v=2.0):
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * DT_S
+    u = sum(rng.uniform(0.3, 1.0) * np.sin(2 * np.pi * f * t + rng.uniform(0, 2 * np.pi))
+            for f in rng.uniform(0.05, 0.7, 6))
+    return amplitude_v * u / np.abs(u).max()
+
+
+def fit_forward(regressor, plant, n=3000, seed=1):
+    u = smooth_voltage(n, seed)
+    model = NarxModel(regressor, input_lags=[0, 0], output_lags=0)
+    return model.fit(voltage_channels(u, TAUS_S, DT_S, include_voltage=False), plant(u))
+
+
+def run(ff, r_mm):
+    st = ff.stepper()
+    return np.array([st.step(r) for r in r_mm])
+
+
+@pytest.fixture(scope="module")
+def linear_ff():
+    model = fit_forward(LinearRegressor(), linear_plant)
+    return ForwardInversionFeedforward(model, input_memory_taus_s=TAUS_S, include_voltage=False)
+
+
+def test_reproduces_a_reachable_target_of_a_linear_system(linear_ff):
+    u_true = smooth_voltage(1500, seed=7, amplitude_v=1.5)  # not the training signal
+    target = linear_plant(u_true)
+    u = run(linear_ff, target)
+    # The voltage found makes the system follow the target; a grid + parabola leaves < 1e-3 V.
+    assert np.sqrt(np.mean((linear_plant(u) - target) ** 2)) < 2e-4
+    assert np.max(np.abs(u - u_true)) < 5e-3
+
+
+def test_reproduces_a_reachable_target_of_a_nonlinear_system_with_an_lssvm():
+    def plant(u_v):  # asymmetric, saturating bend of the same two states
+        ch = voltage_channels(u_v, TAUS_S, DT_S, include_voltage=False)
+        s = ch[:, 0] - 0.4 * ch[:, 1]
+        return np.where(s > 0, 3.0 * np.tanh(s), 1.2 * s * (1 - 0.2 * s))
+
+    model = fit_forward(LSSVMRegressor(C=1e6, sigma=2.0), plant, n=2000)
+    ff = ForwardInversionFeedforward(model, input_memory_taus_s=TAUS_S, include_voltage=False)
+    target = plant(smooth_voltage(1500, seed=9, amplitude_v=1.5))
+    st = ff.stepper()
+    u = np.empty(target.size)
+    predicted = np.empty(target.size)
+    for k, r in enumerate(target):
+        u[k] = st.step(r)
+        predicted[k] = st.predicted_mm
+    assert np.sqrt(np.mean((predicted - target) ** 2)) < 1e-3  # the model follows exactly
+    assert np.sqrt(np.mean((plant(u) - target) ** 2)) < 0.02   # the system within its fit
+
+
+def test_voltage_is_clipped_to_the_limit(linear_ff):
+    up = run(linear_ff, np.full(50, 100.0))
+    down = run(linear_ff, np.full(50, -100.0))
+    assert np.all(up == 3.0) and np.all(down == -3.0)
+    ff = ForwardInversionFeedforward(linear_ff.forward_model, input_memory_taus_s=TAUS_S,
+                                     include_voltage=False, u_limit_v=1.0)
+    assert np.all(np.abs(run(ff, np.linspace(-50, 50, 200))) <= 1.0)
+
+
+def test_record_applied_changes_what_the_model_remembers(linear_ff):
+    a, b = linear_ff.stepper(), linear_ff.stepper()
+    ua, ub = a.step(0.02), b.step(0.02)  # 0.02 mm: reachable in one sample (about 0.4 V)
+    assert ua == ub
+    a.record_applied(ua)  # the same voltage: nothing changes
+    b.record_applied(0.0)  # b's model never received ub
+    assert a.predicted_mm == pytest.approx(linear_plant(np.array([ua]))[0], abs=1e-9)
+    assert b.predicted_mm == pytest.approx(0.0, abs=1e-9)
+    assert abs(ua) < 3.0
+    assert b.step(0.02) > a.step(0.02)  # b is further from the target and pushes harder
+
+
+def test_smoothness_penalty_slows_the_voltage(linear_ff):
+    target = np.r_[np.zeros(5), np.full(30, 1.0)]
+    ff = ForwardInversionFeedforward(linear_ff.forward_model, input_memory_taus_s=TAUS_S,
+                                     include_voltage=False, smoothness_mm2_per_v2=1.0)
+    assert np.max(np.abs(np.diff(run(ff, target)))) < np.max(np.abs(np.diff(run(linear_ff,
+                                                                                target))))
+
+
+def test_bad_input_raises_clear_errors(linear_ff):
+    model = linear_ff.forward_model
+    st = linear_ff.stepper()
+    with pytest.raises(ValueError, match="r_mm must be a finite"):
+        st.step(float("nan"))
+    with pytest.raises(ValueError, match="before any step"):
+        st.record_applied(1.0)
+    with pytest.raises(ValueError, match="2 input channel"):
+        ForwardInversionFeedforward(model, input_memory_taus_s=TAUS_S, include_voltage=True)
+    with pytest.raises(ValueError, match="u_limit_v"):
+        ForwardInversionFeedforward(model, input_memory_taus_s=TAUS_S, include_voltage=False,
+                                    u_limit_v=0.0)
+    with pytest.raises(ValueError, match="horizon_samples"):
+        ForwardInversionFeedforward(model, input_memory_taus_s=TAUS_S, include_voltage=False,
+                                    horizon_samples=0)
+    with pytest.raises(NotFittedError):
+        ForwardInversionFeedforward(NarxModel(LinearRegressor()), input_memory_taus_s=TAUS_S)
+    with pytest.raises(ValueError, match="no channel"):
+        voltage_channels(np.zeros(10), (), DT_S, include_voltage=False)
