@@ -26,6 +26,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--reference", choices=("constant", "constant-reachable"), default="constant",
                    help="-4 mm hold (the paper's, at the 3 V limit) or -3 mm (reachable)")
+    p.add_argument("--identify-input", choices=("steps", "sine+steps"), default="steps",
+                   help="identification record: random steps (holds: creep can be accepted) "
+                        "or random sine + steps (no input holds)")
     p.add_argument("--out", help="folder for the diagnosis report and the hold plots")
     p.add_argument("--json", help="write the numbers to this JSON file")
     args = p.parse_args(argv)
@@ -33,7 +36,8 @@ def main(argv: list[str] | None = None) -> int:
 
     with threadpool_limits(1):
         r = creep_hold_experiment(identify_s=args.identify_s, seed=args.seed,
-                                  reference=args.reference, progress=print_progress)
+                                  reference=args.reference, identify_input=args.identify_input,
+                                  progress=print_progress)
     def f(x):
         return "n/a (creep not found)" if x is None else f"{x:.4f}"
 

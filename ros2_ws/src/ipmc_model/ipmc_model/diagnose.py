@@ -681,7 +681,7 @@ def control_inverse_template(n_samples: int = 0, dt_s: float = 0.01) -> InverseN
 
 def creep_hold_experiment(*, identify_s: float = 120.0, duration_s: float | None = None,
                           reference: str = "constant", seed: int = 0, rate_hz: float = 100.0,
-                          creep: dict | None = None,
+                          creep: dict | None = None, identify_input: str = "steps",
                           diagnosis_kwargs: dict | None = None, progress=None) -> dict:
     """The constant hold of the control issue on the plant with creep, before and after the
     diagnosis adds the creep to the model (RMSE in mm, every sample counts).
@@ -689,8 +689,11 @@ def creep_hold_experiment(*, identify_s: float = 120.0, duration_s: float | None
     ``reference`` is an ``ipmc_control.experiment`` reference: ``"constant"`` (the paper's
     4 mm hold, here -4 mm: at the plant's limit under 3 V) or ``"constant-reachable"`` (-3 mm).
 
-    1. Identification record: ``identify_s`` of random sine + random steps (holds of 3-10 s, so
-       the creep shows) on ``IpmcPlant(effects={"creep": creep})`` at ``rate_hz``.
+    1. Identification record on ``IpmcPlant(effects={"creep": creep})`` at ``rate_hz``,
+       ``identify_s`` long: ``identify_input="steps"`` (default), random 2.5 V steps held 0.5-5 s
+       (``ipmc simulate --input steps``, the demo's rig data): the creep must drift during input
+       holds for the diagnosis to accept it; ``"sine+steps"``: random sine + random steps, whose
+       holds are not holds of the input (the sine rides on them), so creep is not accepted.
     2. :func:`diagnose` on it (the creep parameters are not told).
     3. Inverse models, same hyperparameters: the plain inverse NARX fitted on (u, y), and the
        augmented model's inverse in its baseline space (:meth:`AugmentedModel.fit_inverse`)
@@ -716,9 +719,14 @@ def creep_hold_experiment(*, identify_s: float = 120.0, duration_s: float | None
     say = progress or (lambda msg: None)
     fx = {"creep": dict(creep or {})}
     dt = 1.0 / rate_hz
-    _, us = random_sine(identify_s, rate_hz, 2.5, (0.05, 1.0), 8, seed=seed + 2)
-    _, st = random_steps(identify_s, rate_hz, 1.5, (3.0, 10.0), seed=seed + 3)
-    u = np.clip(0.6 * us + st, -3.0, 3.0)
+    if identify_input == "steps":
+        _, u = random_steps(identify_s, rate_hz, 2.5, seed=seed + 3)
+    elif identify_input == "sine+steps":
+        _, us = random_sine(identify_s, rate_hz, 2.5, (0.05, 1.0), 8, seed=seed + 2)
+        _, st = random_steps(identify_s, rate_hz, 1.5, (3.0, 10.0), seed=seed + 3)
+        u = np.clip(0.6 * us + st, -3.0, 3.0)
+    else:
+        raise ValueError(f"identify_input must be 'steps' or 'sine+steps', got {identify_input!r}")
     run = IpmcPlant(effects=fx, seed=seed, dt_s=dt).run(u)
     say(f"identification record: {u.size} samples at {rate_hz:g} Hz, plant creep on")
     d = diagnose(run.t_s, run.u_v, run.y_mm, seed=seed, progress=say,
