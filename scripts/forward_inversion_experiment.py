@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ipmc_control.demo import INVERSE, TRAIN_INVERSE
 from ipmc_control.experiment import DEFAULT_DURATION_S, paper_reference, run_tracking
 from ipmc_control.references import make_reference
 from ipmc_driver.dataio import load_record
@@ -79,12 +80,8 @@ def main(argv=None) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
 
     train = out / "train.csv"
-    simulate_main(["--input", "random-sine", "--amplitude", "3", "--frequency", "0.5",
-                   "--seconds", "300", "--seed", "1", "--out", str(train)])
-    identify_main(["--data", str(train), "--model", "lssvm-narx", "--inverse", "--tune", "none",
-                   "--C", "1e4", "--sigma", "2", "--input-lags", "0", "--output-lags", "10",
-                   "--lag-step", "2", "--prototypes", "800", "--memory-taus", "1.0",
-                   "--out", str(out / "inverse.json")])
+    simulate_main([*TRAIN_INVERSE, "--out", str(train)])
+    identify_main(["--data", str(train), *INVERSE, "--out", str(out / "inverse.json")])
     inverse = load_model(out / "inverse.json")
     fwd_data = out / "forward_train.csv"
     simulate_main(["--input", "random-sine", "--amplitude", "3", "--frequency",

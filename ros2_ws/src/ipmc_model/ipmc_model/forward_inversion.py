@@ -72,8 +72,8 @@ class ForwardInversionFeedforward:
     ----------
     forward_model : fitted NarxModel
         y_k (mm) from its voltage channels (see :func:`voltage_channels`) and, optionally, its
-        own past outputs. Its regressor should be a kernel expansion (LSSVM: fast batched path);
-        any regressor with ``predict(X)`` works.
+        own past outputs; its regressor's ``predict(X)`` scores every candidate voltage in one
+        batched call.
     input_memory_taus_s : sequence of float
         The time constants (s) the model's low-passed voltage channels were built with.
     include_voltage : bool
@@ -169,13 +169,6 @@ class ForwardInversionStepper:
         m = ff.forward_model
         self._ff = ff
         self._m = m
-        reg = m.regressor_
-        self._centers = getattr(reg, "centers_", None)
-        if self._centers is not None:
-            self._coef = np.asarray(reg.coef_, dtype=float)
-            self._b = float(reg.intercept_)
-            self._gamma = 1.0 / (2.0 * float(reg.sigma_) ** 2)
-            self._csq = (self._centers * self._centers).sum(1)
         self._a = ff.poles_
         self._raw = int(ff.include_voltage)
         self._u_mean = np.asarray(m.u_mean_, dtype=float)
@@ -198,11 +191,8 @@ class ForwardInversionStepper:
 
     # -- the model -----------------------------------------------------------------------------
     def _f(self, X: np.ndarray) -> np.ndarray:
-        """Scaled model output for scaled rows X (G, d)."""
-        if self._centers is None:
-            return np.asarray(self._m.regressor_.predict(X), dtype=float)
-        d2 = self._csq[None, :] - 2.0 * (X @ self._centers.T) + (X * X).sum(1)[:, None]
-        return np.exp(-self._gamma * d2) @ self._coef + self._b
+        """Scaled model output for scaled rows X (G, d): all candidates in one batched call."""
+        return np.asarray(self._m.regressor_.predict(X), dtype=float)
 
     def _rows(self, ub: np.ndarray, yb: np.ndarray, o: int) -> np.ndarray:
         """Scaled regressor rows; column o + d of ub / yb holds the sample d steps back."""
