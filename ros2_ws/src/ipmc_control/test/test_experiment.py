@@ -76,11 +76,14 @@ def test_pid_corrects_a_wrong_feedforward():
 
 
 def test_the_first_step_aims_at_the_first_reference_sample():
-    # At rest (y = 0) the first command already works on the reference's first sample.
+    # At rest (y = 0, no earlier reference sample) the first command is the PID's answer to
+    # the reference's first sample, and the second to the error of the first measurement.
     ref = make_reference("constant", value_mm=1.0)
     res = run_tracking(ref, 0.05, "pid", plant=LagPlant(), use_reference_rate=False)
-    assert res.u_v[0] > 0.0
-    assert res.reference_mm[0] == 1.0
+    pid = PID()
+    first = pid.compute_command(1.0, 0.0, 0.01)
+    assert res.u_v[0] == pytest.approx(first, abs=1e-12)
+    assert res.u_v[1] == pytest.approx(pid.compute_command(1.0, res.y_mm[0], 0.01), abs=1e-12)
 
 
 def test_a_model_mode_needs_an_inverse():
