@@ -30,7 +30,7 @@ from ipmc_control.references import make_reference
 from ipmc_driver.dataio import load_record
 from ipmc_driver.plant import IpmcPlant
 from ipmc_driver.simulate_cli import main as simulate_main
-from ipmc_model.forward_inversion import ForwardInversionFeedforward, voltage_channels
+from ipmc_model.forward_inversion import ForwardInversionFeedforward
 from ipmc_model.identify_cli import identify_main
 from ipmc_model.narx import NarxModel, make_lssvm
 from ipmc_model.persistence import load_model, save_model
@@ -42,8 +42,9 @@ DT_S = 0.01
 def fit_forward(data_csv: Path, C: float, sigma: float, prototypes: int) -> NarxModel:
     rec = load_record(data_csv)
     reg = make_lssvm(C, sigma, n_samples=rec.u_v.size, n_prototypes=prototypes, seed=0)
-    model = NarxModel(reg, input_lags=[0] * len(TAUS_S), output_lags=0)
-    return model.fit(voltage_channels(rec.u_v, TAUS_S, DT_S, include_voltage=False), rec.y_mm)
+    model = NarxModel(reg, input_lags=0, output_lags=0, input_memory_taus_s=TAUS_S,
+                      include_voltage=False, dt_s=DT_S)
+    return model.fit(rec.u_v, rec.y_mm)  # the model builds its voltage channels itself
 
 
 class Timed:
@@ -90,19 +91,17 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     forward = fit_forward(fwd_data, args.C, args.sigma, args.prototypes)
     print(f"forward model fitted in {time.perf_counter() - t0:.1f} s")
-    meta = {"input_memory_taus_s": list(TAUS_S), "include_voltage": False, "dt_s": DT_S,
-            "data": str(fwd_data), "C": args.C, "sigma": args.sigma}
+    meta = {"data": str(fwd_data), "C": args.C, "sigma": args.sigma}
     save_model(forward, out / "forward.json", metadata=meta)
     for v_seed, amp in ((5, "3"), (6, "2")):  # free-run check on records it never saw
         vcsv = out / f"validation_{v_seed}.csv"
         simulate_main(["--input", "random-sine", "--amplitude", amp, "--frequency", "0.7",
                        "--seconds", "60", "--seed", str(v_seed), "--out", str(vcsv)])
         rec = load_record(vcsv)
-        ys = forward.simulate(voltage_channels(rec.u_v, TAUS_S, DT_S, include_voltage=False))
+        ys = forward.simulate(rec.u_v)
         print(f"forward free-run RMSE on {vcsv.name} ({amp} V, 0-0.7 Hz): "
               f"{np.sqrt(np.mean((ys - rec.y_mm) ** 2)):.4f} mm")
-    fwd_ff = ForwardInversionFeedforward(forward, input_memory_taus_s=TAUS_S,
-                                         include_voltage=False, dt_s=DT_S)
+    fwd_ff = ForwardInversionFeedforward(load_model(out / "forward.json"))  # channels from file
 
     refs = [("held-out random seed 1", make_reference("random", band_hz=[0, 0.7],
                                                       range_mm=[-4, 2], seed=1), 60.0),

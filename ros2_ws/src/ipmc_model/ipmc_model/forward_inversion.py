@@ -13,16 +13,19 @@ replaces). ``r_hat`` is the reference extrapolated linearly from its last two sa
 stepper sees r_k only).
 
 Which forward model. The forward model's inputs are voltage channels: optionally the voltage
-itself, then the voltage low-passed with each time constant of ``input_memory_taus_s``
-(``m_j,k = a_j m_j,k-1 + (1 - a_j) u_k``, ``a_j = exp(-dt_s / tau_j)``; build them for fitting
-with :func:`voltage_channels`). Why: the IPMC's tip depends on the applied voltage through its
-double-layer charging (tau ~ 0.3 s) and back-relaxation (tau ~ 0.46 s); low-passed voltages are
-those states, and they see *every* past voltage. A NARX with voltage lags spaced s > 1 samples
-apart sees only every s-th voltage, so its inversion is free to alternate the voltage between
-samples (it rang at the Nyquist frequency, 3 V peak, in the experiment), and a raw-voltage
-channel lets the fit learn a spurious direct u_k -> y_k gain that makes the one-step
-inversion ring as well. ``include_voltage=False`` with taus (0.3, 0.5) s and no output lags
-(an NFIR in the low-passed voltages) is what worked: see scripts/forward_inversion_experiment.py.
+itself, then the voltage low-passed with each time constant of ``input_memory_taus_s`` (``m_j,k
+= a_j m_j,k-1 + (1 - a_j) u_k``, ``a_j = exp(-dt_s / tau_j)``; build them for fitting with
+:func:`voltage_channels`, or let the model build them: ``NarxModel(...,
+input_memory_taus_s=..., include_voltage=...)``, which is what ``ipmc identify
+--input-memory-taus`` writes and model_server and ``ipmc track`` invert). Why: the IPMC's tip
+depends on the applied voltage through its double-layer charging (tau ~ 0.3 s) and
+back-relaxation (tau ~ 0.46 s); low-passed voltages are those states, and they see *every* past
+voltage. A NARX with voltage lags spaced s > 1 samples apart sees only every s-th voltage, so
+its inversion is free to alternate the voltage between samples (it rang at the Nyquist
+frequency, 3 V peak, in the experiment), and a raw-voltage channel lets the fit learn a
+spurious direct u_k -> y_k gain that makes the one-step inversion ring as well.
+``include_voltage=False`` with taus (0.3, 0.5) s and no output lags (an NFIR in the low-passed
+voltages) is what worked: see scripts/forward_inversion_experiment.py.
 """
 
 from __future__ import annotations
@@ -32,37 +35,9 @@ from collections.abc import Sequence
 import numpy as np
 
 from .errors import check_fitted
-from .narx import NarxModel, memory_channels, memory_poles
+from .narx import NarxModel, memory_poles, voltage_channels
 
-
-def voltage_channels(u_v, input_memory_taus_s: Sequence[float], dt_s: float = 0.01, *,
-                     include_voltage: bool = True) -> np.ndarray:
-    """Forward-model input channels from a voltage record.
-
-    Parameters
-    ----------
-    u_v : array_like, shape (N,)
-        Applied voltage, V, from rest (the filters start at 0 V).
-    input_memory_taus_s : sequence of float
-        Time constants of the low-passed voltage channels, s.
-    dt_s : float
-        Sample period, s.
-    include_voltage : bool
-        Put the voltage itself first.
-
-    Returns
-    -------
-    ndarray, shape (N, include_voltage + len(input_memory_taus_s))
-        V.
-    """
-    u = np.asarray(u_v, dtype=float)
-    if u.ndim != 1 or not np.all(np.isfinite(u)):
-        raise ValueError(f"u_v must be a finite 1-D voltage record (V), got shape {u.shape}")
-    if not include_voltage and not len(input_memory_taus_s):
-        raise ValueError("no channel: give input_memory_taus_s or include_voltage=True")
-    cols = memory_channels(u, tuple(input_memory_taus_s), dt_s)
-    cols = cols.reshape(u.size, -1)
-    return cols if include_voltage else cols[:, 1:]
+__all__ = ["ForwardInversionFeedforward", "ForwardInversionStepper", "voltage_channels"]
 
 
 class ForwardInversionFeedforward:
@@ -73,13 +48,17 @@ class ForwardInversionFeedforward:
     forward_model : fitted NarxModel
         y_k (mm) from its voltage channels (see :func:`voltage_channels`) and, optionally, its
         own past outputs; its regressor's ``predict(X)`` scores every candidate voltage in one
-        batched call.
-    input_memory_taus_s : sequence of float
+        batched call. A model with voltage channels of its own
+        (``forward_model.uses_voltage_channels``) brings the next three parameters with it.
+    input_memory_taus_s : sequence of float, optional
         The time constants (s) the model's low-passed voltage channels were built with.
-    include_voltage : bool
-        Whether the model's first channel is the voltage itself.
-    dt_s : float
-        Sample period, s (the model's and the loop's).
+        Default: the model's own, else none.
+    include_voltage : bool, optional
+        Whether the model's first channel is the voltage itself. Default: the model's own,
+        else True.
+    dt_s : float, optional
+        Sample period, s (the model's and the loop's). Default: the model's own, else 0.01.
+    Given for a model with voltage channels, these must agree with it.
     u_limit_v : float
         Voltages are searched in [-u_limit_v, u_limit_v], V (the H-bridge's 3 V).
     smoothness_mm2_per_v2 : float
@@ -97,18 +76,40 @@ class ForwardInversionFeedforward:
     one to advance the model.
     """
 
-    def __init__(self, forward_model: NarxModel, *, input_memory_taus_s: Sequence[float] = (),
-                 include_voltage: bool = True, dt_s: float = 0.01, u_limit_v: float = 3.0,
-                 smoothness_mm2_per_v2: float = 0.0, horizon_samples: int = 1,
-                 grid_points: int = 25, refine_points: int = 21):
-        check_fitted(forward_model, "regressor_")
+    def __init__(self, forward_model: NarxModel, *,
+                 input_memory_taus_s: Sequence[float] | None = None,
+                 include_voltage: bool | None = None, dt_s: float | None = None,
+                 u_limit_v: float = 3.0, smoothness_mm2_per_v2: float = 0.0,
+                 horizon_samples: int = 1, grid_points: int = 25, refine_points: int = 21):
         if not isinstance(forward_model, NarxModel):
             raise ValueError(f"forward_model must be a fitted NarxModel, got "
                              f"{type(forward_model).__name__}")
+        check_fitted(forward_model, "regressor_")
         self.forward_model = forward_model
-        self.input_memory_taus_s = tuple(float(t) for t in input_memory_taus_s)
-        self.include_voltage = bool(include_voltage)
-        self.dt_s = float(dt_s)
+        given = {"input_memory_taus_s": input_memory_taus_s, "include_voltage": include_voltage,
+                 "dt_s": dt_s}
+        if forward_model.uses_voltage_channels:
+            own = {"input_memory_taus_s": tuple(float(t) for t in
+                                                forward_model.input_memory_taus_s),
+                   "include_voltage": bool(forward_model.include_voltage),
+                   "dt_s": float(forward_model.dt_s)}
+            for name, value in given.items():
+                if value is None:
+                    continue
+                if name == "input_memory_taus_s":
+                    value = tuple(float(t) for t in value)
+                if value != own[name]:
+                    raise ValueError(f"{name}={value!r} disagrees with the forward model's own "
+                                     f"voltage channels ({name}={own[name]!r}); leave it out")
+            given = own
+        else:
+            given = {"input_memory_taus_s": () if input_memory_taus_s is None
+                     else input_memory_taus_s,
+                     "include_voltage": True if include_voltage is None else include_voltage,
+                     "dt_s": 0.01 if dt_s is None else dt_s}
+        self.input_memory_taus_s = tuple(float(t) for t in given["input_memory_taus_s"])
+        self.include_voltage = bool(given["include_voltage"])
+        self.dt_s = float(given["dt_s"])
         self.poles_ = (memory_poles(self.input_memory_taus_s, self.dt_s)
                        if self.input_memory_taus_s else np.zeros(0))
         n_channels = int(self.include_voltage) + self.poles_.size
@@ -135,9 +136,19 @@ class ForwardInversionFeedforward:
         self.grid_points = int(grid_points)
         self.refine_points = int(refine_points)
 
-    def stepper(self) -> ForwardInversionStepper:
-        """A fresh sample-by-sample feedforward from rest; see :class:`ForwardInversionStepper`."""
-        return ForwardInversionStepper(self)
+    def stepper(self, u_history=None) -> ForwardInversionStepper:
+        """A fresh sample-by-sample feedforward; see :class:`ForwardInversionStepper`.
+
+        ``u_history``: voltages (V, oldest first) it applied before, replayed from rest so that
+        a restarted feedforward (model_server's reload) continues where the last one was;
+        default none: from rest."""
+        st = ForwardInversionStepper(self)
+        if u_history is not None:
+            for u in np.atleast_1d(np.asarray(u_history, dtype=float)):
+                if not np.isfinite(u):
+                    raise ValueError(f"u_history must hold finite voltages (V), got {u!r}")
+                st._advance(min(self.u_limit_v, max(-self.u_limit_v, float(u))))
+        return st
 
     def get_params(self) -> dict:
         return {

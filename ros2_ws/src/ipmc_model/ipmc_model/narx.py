@@ -6,7 +6,11 @@ Forward model (Eq. 8), input lags m and output lags n (paper: 3 and 3):
 
 ``u`` may carry extra exogenous channels, shape (N, c), each with its own input lags; this is
 how an augmented model (a filtered input for creep, a time signal for drift) reuses the same
-machinery. Inverse model (Eq. 19), used as a feedforward compensator:
+machinery. A forward model may instead build its input channels from the voltage itself
+(``input_memory_taus_s``, ``include_voltage``): the voltage low-passed with each time constant,
+optionally with the voltage; then ``fit``, ``predict``, ``simulate`` and ``stepper`` all take
+the raw voltage (N,) and the channels are part of the model. Inverse model (Eq. 19), used as a
+feedforward compensator:
 
     u_l = h(y_l, y_{l-1}, ..., y_{l-n}, u_{l-1}, ..., u_{l-m})
 
@@ -107,6 +111,20 @@ class NarxModel:
     max_rows : int, optional
         Fit on at most this many regressor rows, evenly spaced in time (hyperparameter
         tuning uses it to make one evaluation cheap); default all rows.
+    input_memory_taus_s : sequence of float
+        Voltage channels: time constants (s) of the voltage low-passed from rest,
+        ``m_j,k = a_j m_j,k-1 + (1 - a_j) u_k``, ``a_j = exp(-dt_s / tau_j)``, each one input
+        channel (with its own input lags). Default none: ``u`` is used as given.
+    include_voltage : bool
+        With voltage channels: the voltage itself is the first channel (default True). False
+        with ``input_memory_taus_s`` (0.3, 0.5) and no output lags is the forward model that
+        inverts smoothly (:mod:`ipmc_model.forward_inversion`).
+    dt_s : float
+        Sample period of the data, s (discretises the voltage channels; unused without).
+
+    With voltage channels (``input_memory_taus_s`` given or ``include_voltage=False``) every
+    method takes the voltage ``u`` as a 1-D record (V) and builds the channels itself (see
+    :func:`voltage_channels`); lags, scalings and the regressor see the channels.
 
     Attributes
     ----------
@@ -114,24 +132,51 @@ class NarxModel:
     max_lag_ : int
         Number of leading samples that are initial conditions (skipped by metrics).
     n_inputs_ : int
-        Number of input channels c.
+        Number of input channels c seen by the regressor (the voltage channels, if any).
     u_mean_, u_scale_ : ndarray (c,)
     y_mean_, y_scale_ : float
     """
 
     def __init__(self, regressor=None, input_lags=3, output_lags: int = 3, lag_step: int = 1,
-                 standardize=True, max_rows: int | None = None):
+                 standardize=True, max_rows: int | None = None, input_memory_taus_s=(),
+                 include_voltage: bool = True, dt_s: float = 0.01):
         self.regressor = regressor
         self.input_lags = input_lags
         self.output_lags = output_lags
         self.lag_step = lag_step
         self.standardize = standardize
         self.max_rows = max_rows
+        self.input_memory_taus_s = input_memory_taus_s
+        self.include_voltage = include_voltage
+        self.dt_s = dt_s
         self.regressor_ = None
+
+    @property
+    def uses_voltage_channels(self) -> bool:
+        """Whether the model builds its input channels from a 1-D voltage record."""
+        return bool(len(self.input_memory_taus_s)) or not self.include_voltage
+
+    def voltage_poles(self) -> np.ndarray:
+        """Discrete poles exp(-dt_s / tau) of the low-passed voltage channels (may be empty)."""
+        taus = tuple(float(t) for t in self.input_memory_taus_s)
+        return memory_poles(taus, float(self.dt_s)) if taus else np.zeros(0)
+
+    def input_channels(self, u, name: str = "u", min_length: int = 1) -> np.ndarray:
+        """Regressor input channels (N, c) for an input record: the voltage channels built from
+        a 1-D voltage (V) if the model has them, else ``u`` as given, (N,) or (N, c)."""
+        if not self.uses_voltage_channels:
+            return _as_inputs(name, u, min_length)
+        arr = np.asarray(u, dtype=float)
+        if arr.ndim != 1:
+            raise ValueError(f"{name} must be a 1-D voltage record (V): this model builds its "
+                             f"input channels from the voltage, got shape {arr.shape}")
+        return voltage_channels(as_signal(name, arr, min_length=min_length),
+                                tuple(float(t) for t in self.input_memory_taus_s),
+                                float(self.dt_s), include_voltage=bool(self.include_voltage))
 
     # -- helpers -----------------------------------------------------------------------------
     def _check_pair(self, u, y, min_length: int = 1):
-        us = _as_inputs("u", u, min_length)
+        us = self.input_channels(u, "u", min_length)
         ys = as_signal("y", y, min_length=min_length)
         same_length(u=us[:, 0], y=ys)
         return us, ys
@@ -216,7 +261,7 @@ class NarxModel:
         Parameters
         ----------
         u : array_like, shape (N,) or (N, c)
-            Input (V).
+            Input (V); (N,) from rest with voltage channels.
         y_init : array_like, shape (max_lag_,), optional
             The first ``max_lag_`` outputs (initial conditions, mm); default zeros (rest).
 
@@ -228,7 +273,7 @@ class NarxModel:
         """
         check_fitted(self, "regressor_")
         L = self.max_lag_
-        us = _as_inputs("u", u, min_length=L + 1)
+        us = self.input_channels(u, "u", min_length=L + 1)
         self._check_inputs(us)
         if y_init is None:
             y0 = np.zeros(L)
@@ -269,6 +314,9 @@ class NarxModel:
             "output_lags": self.output_lags,
             "lag_step": self.lag_step,
             "standardize": self.standardize,
+            "input_memory_taus_s": [float(t) for t in self.input_memory_taus_s],
+            "include_voltage": bool(self.include_voltage),
+            "dt_s": float(self.dt_s),
         }
 
 
@@ -280,6 +328,9 @@ class NarxStepper:
     next step is a one-step-ahead prediction). Cost per step: one kernel row plus a few
     small array copies.
 
+    With voltage channels, ``step`` takes the voltage (a float, V) and advances the channels'
+    filters itself, and ``u_history`` is the past voltage (N_h,) (filtered from rest over it).
+
     Parameters
     ----------
     model : fitted NarxModel
@@ -290,6 +341,11 @@ class NarxStepper:
 
     def __init__(self, model: NarxModel, u_history=None, y_history=None):
         self._model = model
+        self._channels = model.uses_voltage_channels
+        self._a = model.voltage_poles() if self._channels else np.zeros(0)
+        self._raw = int(bool(model.include_voltage))
+        self._mem = np.zeros(self._a.size)
+        self._ch = np.empty(model.n_inputs_)
         self._f = model.regressor_.predict_one
         self._u_mean = np.asarray(model.u_mean_, dtype=float)
         self._u_scale = np.asarray(model.u_scale_, dtype=float)
@@ -310,7 +366,14 @@ class NarxStepper:
         """Reload the history (oldest first, physical units); missing past is 0 V / 0 mm."""
         m = self._model
         c = m.n_inputs_
-        uh = np.zeros((0, c)) if u_history is None else _as_inputs("u_history", u_history)
+        self._mem[:] = 0.0
+        if u_history is None:
+            uh = np.zeros((0, c))
+        elif self._channels:
+            uh = m.input_channels(u_history, "u_history")
+            self._mem[:] = uh[-1, self._raw:]
+        else:
+            uh = _as_inputs("u_history", u_history)
         if uh.shape[1] != c:
             raise ValueError(f"u_history must have {c} channel(s), got {uh.shape[1]}")
         yh = np.zeros(0) if y_history is None else as_signal("y_history", y_history)
@@ -326,6 +389,15 @@ class NarxStepper:
     def step(self, u_k) -> float:
         """Feed the input u_k (V; a float, or (c,) for several channels); return y_k (mm)."""
         ub, yb, x, du = self._ub, self._yb, self._x, self._du
+        if self._channels:
+            u = float(u_k)
+            a = self._a
+            self._mem = a * self._mem + (1.0 - a) * u
+            ch = self._ch
+            if self._raw:
+                ch[0] = u
+            ch[self._raw:] = self._mem
+            u_k = ch
         ub[1:] = ub[:-1]
         ub[0] = (np.asarray(u_k, dtype=float) - self._u_mean) / self._u_scale
         pos = 0
@@ -363,6 +435,36 @@ def memory_channels(y: np.ndarray, memory_taus_s, dt_s: float) -> np.ndarray:
 
     cols = [y] + [lfilter([1.0 - a], [1.0, -a], y) for a in memory_poles(memory_taus_s, dt_s)]
     return np.column_stack(cols)
+
+
+def voltage_channels(u_v, input_memory_taus_s, dt_s: float = 0.01, *,
+                     include_voltage: bool = True) -> np.ndarray:
+    """Forward-model input channels from a voltage record.
+
+    Parameters
+    ----------
+    u_v : array_like, shape (N,)
+        Applied voltage, V, from rest (the filters start at 0 V).
+    input_memory_taus_s : sequence of float
+        Time constants of the low-passed voltage channels, s.
+    dt_s : float
+        Sample period, s.
+    include_voltage : bool
+        Put the voltage itself first.
+
+    Returns
+    -------
+    ndarray, shape (N, include_voltage + len(input_memory_taus_s))
+        V.
+    """
+    u = np.asarray(u_v, dtype=float)
+    if u.ndim != 1 or not np.all(np.isfinite(u)):
+        raise ValueError(f"u_v must be a finite 1-D voltage record (V), got shape {u.shape}")
+    if not include_voltage and not len(input_memory_taus_s):
+        raise ValueError("no channel: give input_memory_taus_s or include_voltage=True")
+    cols = memory_channels(u, tuple(input_memory_taus_s), dt_s)
+    cols = cols.reshape(u.size, -1)
+    return cols if include_voltage else cols[:, 1:]
 
 
 class InverseNarxModel:

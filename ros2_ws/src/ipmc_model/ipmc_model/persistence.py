@@ -4,6 +4,11 @@ file of its arrays next to it (``model.json`` + ``model.npz``).
 ``load_model`` fails with a :class:`~ipmc_model.errors.ModelFileError` whose message is one
 sentence naming the file and what is wrong (missing, not JSON, not an ipmc-ros model, newer
 format version, arrays missing or not matching the JSON's checksum).
+
+Format versions: 1, every model; 2 adds a forward ``lssvm-narx`` model's voltage channels
+(``model.params``: ``input_memory_taus_s``, ``include_voltage``, ``dt_s``). A file is written
+with the lowest version that holds it (a model without voltage channels is still version 1,
+readable by an older ipmc_model); version-1 files load as before.
 """
 
 from __future__ import annotations
@@ -22,7 +27,9 @@ from .narx import InverseNarxModel, NarxModel
 from .play import PrandtlIshlinskii
 
 FORMAT = "ipmc-ros-model"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # the newest this module reads and writes
+#: NarxModel parameters that exist only since format version 2 (voltage channels).
+CHANNEL_PARAMS = ("input_memory_taus_s", "include_voltage", "dt_s")
 KINDS = ("pi", "lssvm-narx", "lssvm-narx-inverse")
 
 
@@ -44,8 +51,11 @@ def _regressor_doc(reg) -> tuple[dict, dict]:
 
 def _narx_doc(m: NarxModel) -> tuple[dict, dict]:
     reg_doc, arrays = _regressor_doc(m.regressor_)
+    params = m.get_params()
+    if not m.uses_voltage_channels:  # as a version-1 file
+        params = {k: v for k, v in params.items() if k not in CHANNEL_PARAMS}
     doc = {
-        "params": m.get_params(),
+        "params": params,
         "input_lags_": list(m.input_lags_),
         "u_mean": [float(v) for v in np.atleast_1d(m.u_mean_)],
         "u_scale": [float(v) for v in np.atleast_1d(m.u_scale_)],
@@ -93,12 +103,13 @@ def save_model(model, path, *, metadata: dict | None = None) -> Path:
         body, arrays = _narx_doc(model)
     else:
         raise ValueError(f"cannot save an object of type {type(model).__name__}")
+    version = 2 if isinstance(model, NarxModel) and model.uses_voltage_channels else 1
     buf = io.BytesIO()
     np.savez(buf, **{k: np.asarray(v, dtype=float) for k, v in arrays.items()})
     blob = buf.getvalue()
     doc = {
         "format": FORMAT,
-        "format_version": FORMAT_VERSION,
+        "format_version": version,
         "kind": kind,
         "units": {"input": "V", "output": "mm"},
         "arrays_file": _arrays_path(path).name,
@@ -209,6 +220,13 @@ def _build_narx(body: dict, arrays: dict, params: dict) -> NarxModel:
     m.regressor_ = _build_regressor(body["regressor"], arrays)
     if m.regressor_.centers_.shape[1] != m.n_features_:
         raise ValueError("regressor width does not match the lags")
+    if m.uses_voltage_channels:
+        m.voltage_poles()  # ValueError on bad time constants or sample period
+        n = int(bool(m.include_voltage)) + len(m.input_memory_taus_s)
+        if n != m.n_inputs_:
+            raise ValueError(f"{n} voltage channel(s) but input lags for {m.n_inputs_}")
+    if len(m.u_mean_) != m.n_inputs_ or len(m.u_scale_) != m.n_inputs_:
+        raise ValueError("input scalings do not match the input channels")
     return m
 
 

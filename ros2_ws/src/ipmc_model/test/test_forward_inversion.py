@@ -132,3 +132,35 @@ def test_bad_input_raises_clear_errors(linear_ff):
         ForwardInversionFeedforward(NarxModel(LinearRegressor()), input_memory_taus_s=TAUS_S)
     with pytest.raises(ValueError, match="no channel"):
         voltage_channels(np.zeros(10), (), DT_S, include_voltage=False)
+
+
+def test_a_model_with_its_own_voltage_channels_needs_no_repeated_taus(linear_ff):
+    u = smooth_voltage(3000, seed=1)
+    own = NarxModel(LinearRegressor(), input_lags=0, output_lags=0, input_memory_taus_s=TAUS_S,
+                    include_voltage=False, dt_s=DT_S).fit(u, linear_plant(u))
+    ff = ForwardInversionFeedforward(own)
+    assert ff.get_params()["input_memory_taus_s"] == list(TAUS_S)
+    assert ff.include_voltage is False and ff.dt_s == DT_S
+    target = linear_plant(smooth_voltage(500, seed=7, amplitude_v=1.5))
+    np.testing.assert_allclose(run(ff, target), run(linear_ff, target), rtol=0, atol=1e-9)
+    # Repeating the model's own values is accepted; contradicting them is not.
+    ForwardInversionFeedforward(own, input_memory_taus_s=list(TAUS_S), dt_s=DT_S)
+    with pytest.raises(ValueError, match="dt_s=0.02 disagrees"):
+        ForwardInversionFeedforward(own, dt_s=0.02)
+    with pytest.raises(ValueError, match="include_voltage=True disagrees"):
+        ForwardInversionFeedforward(own, include_voltage=True)
+
+
+def test_stepper_seeded_with_past_voltages_continues_the_run(linear_ff):
+    target = linear_plant(smooth_voltage(400, seed=3, amplitude_v=1.5))
+    a = linear_ff.stepper()
+    u = []
+    for r in target[:200]:
+        u.append(a.step(r))
+        a.record_applied(u[-1])
+    b = linear_ff.stepper(u_history=u)
+    assert b.predicted_mm == pytest.approx(a.predicted_mm, abs=1e-12)
+    for r in target[200:260]:
+        assert b.step(r) == pytest.approx(a.step(r), abs=1e-9)
+    with pytest.raises(ValueError, match="finite voltages"):
+        linear_ff.stepper(u_history=[0.0, float("nan")])

@@ -181,3 +181,60 @@ def test_inverse_memory_rejects_bad_time_constants(hyst_data, taus, dt):
     u, y = hyst_data
     with pytest.raises(ValueError, match="memory_taus_s|dt_s"):
         InverseNarxModel(LSSVMRegressor(), memory_taus_s=taus, dt_s=dt).fit(u, y)
+
+
+def _two_state_plant(u, dt=0.01):
+    """Tip (mm) from a charging and a relaxation state of the voltage (taus 0.3, 0.5 s)."""
+    from ipmc_model.narx import voltage_channels
+
+    ch = voltage_channels(u, (0.3, 0.5), dt, include_voltage=False)
+    s = 2.0 * ch[:, 0] - 0.8 * ch[:, 1]
+    return np.where(s > 0, 2.5 * np.tanh(s), s)
+
+
+def test_voltage_channel_model_builds_its_channels_from_the_voltage(hyst_data):
+    from ipmc_model.narx import voltage_channels
+
+    u, _ = hyst_data
+    y = _two_state_plant(u)
+    m = NarxModel(LSSVMRegressor(C=1e5, sigma=2.0), input_lags=0, output_lags=0,
+                  input_memory_taus_s=(0.3, 0.5), include_voltage=False).fit(u[:800], y[:800])
+    assert m.uses_voltage_channels and m.n_inputs_ == 2 and m.max_lag_ == 0
+    assert not NarxModel().uses_voltage_channels
+    # The same as a plain model fitted on channels the caller built.
+    ch = voltage_channels(u, (0.3, 0.5), 0.01, include_voltage=False)
+    plain = NarxModel(LSSVMRegressor(C=1e5, sigma=2.0), input_lags=[0, 0],
+                      output_lags=0).fit(ch[:800], y[:800])
+    assert_allclose(m.simulate(u), plain.simulate(ch), rtol=0, atol=1e-12)
+    assert_allclose(m.predict(u, y), plain.predict(ch, y), rtol=0, atol=1e-12)
+    assert rmse(y[:800], m.simulate(u[:800])) < 0.05 * np.std(y)
+    assert rmse(y[800:], m.simulate(u)[800:]) < 0.25 * np.std(y)   # held out, extrapolating
+    # Stepper from rest, and seeded with a voltage history, follow the free run.
+    free = m.simulate(u)
+    st = m.stepper()
+    assert_allclose([st.step(v) for v in u[:300]], free[:300], rtol=0, atol=1e-9)
+    st = m.stepper(u_history=u[:600], y_history=y[:600])
+    assert_allclose([st.step(v) for v in u[600:700]], free[600:700], rtol=0, atol=1e-9)
+
+
+def test_voltage_channel_model_with_the_raw_voltage_and_output_lags(hyst_data):
+    u, y = hyst_data
+    m = NarxModel(LSSVMRegressor(C=1e3, sigma=3.0), input_lags=1, output_lags=2,
+                  input_memory_taus_s=[0.5], dt_s=0.01).fit(u[:800], y[:800])
+    assert m.n_inputs_ == 2 and m.max_lag_ == 2
+    free = m.simulate(u[:900], y[:2])
+    st = m.stepper(u_history=u[:2], y_history=y[:2])
+    assert_allclose([st.step(v) for v in u[2:900]], free[2:], rtol=1e-9, atol=1e-9)
+    assert m.get_params()["input_memory_taus_s"] == [0.5]
+
+
+def test_voltage_channel_model_refuses_bad_channels(hyst_data):
+    u, y = hyst_data
+    with pytest.raises(ValueError, match="no channel"):
+        NarxModel(LSSVMRegressor(), include_voltage=False).fit(u, y)
+    with pytest.raises(ValueError, match="memory_taus_s"):
+        NarxModel(LSSVMRegressor(), input_memory_taus_s=[0.0]).fit(u, y)
+    m = NarxModel(LSSVMRegressor(C=10.0, sigma=2.0), input_lags=0, output_lags=0,
+                  input_memory_taus_s=(0.3,)).fit(u[:300], y[:300])
+    with pytest.raises(ValueError, match="1-D voltage record"):
+        m.simulate(np.column_stack([u, u]))

@@ -112,3 +112,56 @@ def test_inverse_file_without_memory_keys_loads(tmp_path, hyst_data, models):
     loaded = load_model(path)
     assert loaded.memory_taus_s == ()
     assert_allclose(loaded.simulate(y[500:600]), models["inverse"].simulate(y[500:600]))
+
+
+@pytest.fixture(scope="module")
+def channel_model(hyst_data):
+    u, y = hyst_data
+    return NarxModel(LSSVMRegressor(C=100.0, sigma=2.0), input_lags=0, output_lags=0,
+                     input_memory_taus_s=(0.3, 0.5), include_voltage=False,
+                     dt_s=0.02).fit(u[:500], y[:500])
+
+
+def test_voltage_channel_model_round_trip(tmp_path, hyst_data, channel_model):
+    u, y = hyst_data
+    path = save_model(channel_model, tmp_path / "fwd")
+    doc = json.loads(path.read_text())
+    assert doc["format_version"] == 2 and doc["kind"] == "lssvm-narx"
+    assert doc["model"]["params"]["input_memory_taus_s"] == [0.3, 0.5]
+    assert doc["model"]["params"]["include_voltage"] is False
+    assert doc["model"]["params"]["dt_s"] == 0.02
+    loaded = load_model(path)
+    assert loaded.uses_voltage_channels
+    assert loaded.get_params() == channel_model.get_params()
+    # The file alone rebuilds the channels from the raw voltage.
+    assert_allclose(loaded.simulate(u[500:700]), channel_model.simulate(u[500:700]))
+    assert_allclose(loaded.predict(u[500:700], y[500:700]),
+                    channel_model.predict(u[500:700], y[500:700]))
+    st = loaded.stepper()
+    assert_allclose([st.step(v) for v in u[500:550]], channel_model.simulate(u[500:550]),
+                    rtol=1e-9, atol=1e-12)
+
+
+def test_model_without_voltage_channels_is_still_a_version_1_file(tmp_path, models):
+    path = save_model(models["narx"], tmp_path / "plain")
+    doc = json.loads(path.read_text())
+    assert doc["format_version"] == 1
+    assert not set(doc["model"]["params"]) & {"input_memory_taus_s", "include_voltage", "dt_s"}
+    assert not load_model(path).uses_voltage_channels
+
+
+def test_voltage_channel_file_with_wrong_channels_is_corrupt(tmp_path, channel_model):
+    path = save_model(channel_model, tmp_path / "fwd")
+    doc = json.loads(path.read_text())
+    doc["model"]["params"]["input_memory_taus_s"] = [0.3]   # one channel, lags for two
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ModelFileError, match="corrupt model content.*voltage channel"):
+        load_model(path)
+    doc["model"]["params"]["input_memory_taus_s"] = [0.3, -0.5]
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ModelFileError, match="corrupt model content.*memory_taus_s"):
+        load_model(path)
+    doc["format_version"] = FORMAT_VERSION + 1
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ModelFileError, match="newer than this ipmc_model supports"):
+        load_model(path)
