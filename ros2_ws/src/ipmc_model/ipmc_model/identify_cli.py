@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .metrics import score
-from .narx import PAPER_C, PAPER_SIGMA, InverseNarxModel, NarxModel
+from .narx import PAPER_C, PAPER_SIGMA, InverseNarxModel, NarxModel, make_lssvm
 from .persistence import load_model, save_model
 from .play import PrandtlIshlinskii
 from .tuning import (
@@ -35,6 +35,10 @@ DEFAULT_LAGS, DEFAULT_FOLDS, DEFAULT_PROTOTYPES = 6, 4, 500
 #: inverse learns u_l ~ u_{l-1} and its free run drifts (about 1 V RMSE on the rig); without
 #: voltage feedback (m = 0) it is a nonlinear FIR in the displacement (docs/models.md).
 DEFAULT_INVERSE_INPUT_LAGS = 0
+#: Lags of a forward model with voltage channels (--input-memory-taus) by default: none, the
+#: NFIR in the low-passed voltages that inverts smoothly (docs/control.md, "Feedforward from
+#: the forward model").
+DEFAULT_CHANNEL_LAGS = 0
 #: Validation samples scored per block (100 s at 100 Hz).
 MAX_VAL_SAMPLES = 10000
 
@@ -67,6 +71,11 @@ def _memory_taus(text: str) -> tuple[float, ...]:
     if not taus or not all(math.isfinite(v) and v > 0 for v in taus):
         raise argparse.ArgumentTypeError(f"memory taus must be positive seconds, got {text!r}")
     return taus
+
+
+def _taus_list(values) -> tuple[float, ...]:
+    """--input-memory-taus TAU [TAU ..] (each token parsed by _memory_taus: a comma list)."""
+    return tuple(t for v in values for t in v)
 
 
 def _lag_step(text: str):
@@ -166,8 +175,9 @@ def _identify_parser() -> argparse.ArgumentParser:
                    help=f"m: input lags; with --inverse, past voltages (default {DEFAULT_LAGS}"
                         f", with --inverse {DEFAULT_INVERSE_INPUT_LAGS}: no voltage feedback, "
                         "so the inverse free run cannot drift; the paper's is 3)")
-    p.add_argument("--output-lags", type=int, default=DEFAULT_LAGS,
-                   help=f"n (default {DEFAULT_LAGS}; the paper's is 3)")
+    p.add_argument("--output-lags", type=int, default=None,
+                   help=f"n (default {DEFAULT_LAGS}, with --input-memory-taus "
+                        f"{DEFAULT_CHANNEL_LAGS}; the paper's is 3)")
     p.add_argument("--lag-step", type=_lag_step, default=None,
                    help="spacing of the lags in samples: an integer, a comma list to search "
                         "(e.g. 5,10,20) or 'auto' (searches "
@@ -178,6 +188,17 @@ def _identify_parser() -> argparse.ArgumentParser:
                         "low-passed with these time constants (s, comma list, e.g. 1.0); they "
                         "let the inverse undo the IPMC's back-relaxation without a voltage "
                         "recursion (default none: the paper's structure)")
+    p.add_argument("--input-memory-taus", nargs="+", type=_memory_taus, default=None,
+                   metavar="TAU",
+                   help="lssvm-narx forward: voltage channels, the voltage low-passed with "
+                        "these time constants (s, e.g. 0.3 0.5), built by the model from the "
+                        "raw voltage and stored in its file; such a model can be inverted for "
+                        "the feedforward (model_server, ipmc track). Input and output lags "
+                        f"default to {DEFAULT_CHANNEL_LAGS}; needs --tune none with --C and "
+                        "--sigma (e.g. --C 1e6 --sigma 1)")
+    p.add_argument("--no-raw-voltage", dest="raw_voltage", action="store_false",
+                   help="with --input-memory-taus: the low-passed voltages only, not the "
+                        "voltage itself (the structure that inverts smoothly)")
     p.add_argument("--prototypes", type=int, default=DEFAULT_PROTOTYPES,
                    help=f"lssvm-narx: fixed-size prototypes above --max-exact rows (default "
                         f"{DEFAULT_PROTOTYPES})")
@@ -210,16 +231,22 @@ def identify_main(argv: list[str] | None = None) -> int:
             if args.inverse:
                 raise ValueError("--inverse is for lssvm-narx; a PI model is inverted "
                                  "analytically (PrandtlIshlinskii.inverse())")
+            if args.input_memory_taus is not None or not args.raw_voltage:
+                raise ValueError("--input-memory-taus and --no-raw-voltage are for lssvm-narx")
             print(f"fitting a PI model ({args.operators} play operators, {args.pi_method})",
                   file=sys.stderr)
             model = PrandtlIshlinskii(n_operators=args.operators, method=args.pi_method,
                                       seed=args.seed).fit(u, y)
+        elif args.input_memory_taus is not None or not args.raw_voltage:
+            model = _identify_channel_model(args, u, y, 1.0 / float(rec.rate_hz))
         else:
             tune = args.tune == "abc"
             if args.memory_taus and not args.inverse:
                 raise ValueError("--memory-taus is for an inverse model: add --inverse")
             if args.input_lags is None:
                 args.input_lags = DEFAULT_INVERSE_INPUT_LAGS if args.inverse else DEFAULT_LAGS
+            if args.output_lags is None:
+                args.output_lags = DEFAULT_LAGS
             if args.lag_step is None:
                 args.lag_step = "auto" if tune else 1
             if tune:
@@ -253,6 +280,41 @@ def identify_main(argv: list[str] | None = None) -> int:
         print(f"ipmc identify: error: {exc}", file=sys.stderr)
         return 1
     return 0
+
+
+def _identify_channel_model(args, u, y, dt_s: float) -> NarxModel:
+    """The forward LSSVM-NARX with voltage channels of --input-memory-taus / --no-raw-voltage."""
+    if args.input_memory_taus is None:
+        raise ValueError("--no-raw-voltage needs --input-memory-taus (the low-passed voltage "
+                         "channels that replace the voltage)")
+    taus = _taus_list(args.input_memory_taus)
+    if args.inverse:
+        raise ValueError("--input-memory-taus is for a forward model; an inverse model's "
+                         "channels are --memory-taus (the desired displacement low-passed)")
+    if args.memory_taus:
+        raise ValueError("--memory-taus is for an inverse model: add --inverse")
+    if args.tune != "none":
+        # tuning.tune_lssvm_narx builds plain NarxModels from a 1-D input: it cannot score
+        # candidates with voltage channels yet.
+        raise ValueError("--input-memory-taus needs --tune none with --C and --sigma (ABC "
+                         "tuning of models with voltage channels is not supported yet; the "
+                         "recipe in docs/control.md is --C 1e6 --sigma 1)")
+    lag_step = 1 if args.lag_step is None else args.lag_step
+    if not isinstance(lag_step, int):
+        raise ValueError("--lag-step 'auto' or a list needs tuning; give one integer")
+    in_lags = DEFAULT_CHANNEL_LAGS if args.input_lags is None else args.input_lags
+    out_lags = DEFAULT_CHANNEL_LAGS if args.output_lags is None else args.output_lags
+    n_rows = u.size if args.max_rows is None else min(u.size, int(args.max_rows))
+    reg = make_lssvm(args.C, args.sigma, n_samples=n_rows, max_exact=args.max_exact,
+                     n_prototypes=args.prototypes, seed=args.seed)
+    print(f"fitting a forward LSSVM-NARX on voltage channels (taus {', '.join(map(str, taus))}"
+          f" s{', and the voltage' if args.raw_voltage else ''}; input lags {in_lags}, output "
+          f"lags {out_lags}, C = {args.C:g}, sigma = {args.sigma:g})", file=sys.stderr,
+          flush=True)
+    model = NarxModel(reg, input_lags=in_lags, output_lags=out_lags, lag_step=lag_step,
+                      max_rows=args.max_rows, input_memory_taus_s=taus,
+                      include_voltage=args.raw_voltage, dt_s=dt_s)
+    return model.fit(u, y)
 
 
 def _evaluate_parser() -> argparse.ArgumentParser:

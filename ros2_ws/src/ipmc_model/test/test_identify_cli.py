@@ -150,3 +150,62 @@ def test_identify_inverse_memory_taus(tmp_path, csvs, capsys):
                         "--out", str(tmp_path / "fwd")])
     assert rc == 1
     assert "--inverse" in capsys.readouterr().err
+
+
+def test_identify_builds_a_forward_model_with_voltage_channels(tmp_path, csvs, capsys):
+    train, test = csvs
+    out = tmp_path / "fwd.json"
+    rc = identify_main(["--data", str(train), "--model", "lssvm-narx", "--tune", "none",
+                        "--C", "1e4", "--sigma", "2", "--input-memory-taus", "0.3", "0.5",
+                        "--no-raw-voltage", "--output-lags", "0", "--out", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    stdout = capsys.readouterr().out
+    assert "training free-run: RMSE" in stdout
+    m = load_model(out)
+    assert m.uses_voltage_channels and m.include_voltage is False
+    assert tuple(m.input_memory_taus_s) == (0.3, 0.5) and m.dt_s == pytest.approx(0.01)
+    assert m.input_lags == 0 and m.output_lags == 0 and m.n_inputs_ == 2
+    doc = json.loads(out.read_text())
+    assert doc["format_version"] == 2
+    assert doc["model"]["params"]["input_memory_taus_s"] == [0.3, 0.5]
+    # The training free run it reported is the model's own free run of the raw voltage.
+    from ipmc_driver.dataio import load_record
+
+    rec = load_record(train)
+    rmse = np.sqrt(np.mean((m.simulate(rec.u_v) - rec.y_mm) ** 2))
+    assert doc["metadata"]["training_metrics"]["free_run"]["rmse"] == pytest.approx(rmse)
+    assert rmse < 0.2 * np.std(rec.y_mm)
+    # Comma lists work too; with the voltage kept, three channels.
+    rc = identify_main(["--data", str(train), "--model", "lssvm-narx", "--tune", "none",
+                        "--C", "1e4", "--sigma", "2", "--input-memory-taus", "0.3,0.5",
+                        "--out", str(tmp_path / "fwd3.json")])
+    assert rc == 0
+    assert load_model(tmp_path / "fwd3.json").n_inputs_ == 3
+    assert evaluate_main(["--model", str(out), "--data", str(test)]) == 0
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--no-raw-voltage"], "--no-raw-voltage needs --input-memory-taus"),
+    (["--input-memory-taus", "0.3", "--inverse"], "is for a forward model"),
+    (["--input-memory-taus", "0.3", "--tune", "abc"], "needs --tune none"),
+])
+def test_identify_refuses_bad_voltage_channel_options(tmp_path, csvs, capsys, extra, message):
+    train, _ = csvs
+    argv = ["--data", str(train), "--model", "lssvm-narx", "--tune", "none", "--C", "10",
+            "--sigma", "2", "--out", str(tmp_path / "x.json")]
+    if "abc" in extra:
+        argv.remove("none")
+        argv.remove("--tune")
+    rc = identify_main(argv + extra)
+    assert rc == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("ipmc identify: error:") and message in err and "\n" not in err
+
+
+def test_identify_refuses_nonpositive_input_memory_taus(tmp_path, csvs, capsys):
+    train, _ = csvs
+    with pytest.raises(SystemExit) as info:
+        identify_main(["--data", str(train), "--model", "lssvm-narx", "--out",
+                       str(tmp_path / "x.json"), "--input-memory-taus", "0.3", "-1"])
+    assert info.value.code == 2
+    assert "positive seconds" in capsys.readouterr().err
