@@ -5,6 +5,11 @@ the ROS graph (separate processes over real DDS, lock-step clock).
                --mode pid|inverse|hybrid
                [--graph] [--plant-effect creep] --json OUT
 
+``--model`` is an inverse model (``ipmc identify --inverse``) or a forward model with voltage
+channels (``ipmc identify --input-memory-taus ...``): the feedforward then inverts the forward
+model sample by sample (``ipmc_model.forward_inversion``), in process and, with ``--graph``, in
+model_server (``feedforward:=forward-inversion``).
+
 Both ways run the same loop (``ipmc_control.experiment``), so their RMSEs agree closely; the
 JSON is ``{"rmse_mm", "max_abs_mm", "u_max_v", "duration_s", "samples"}``. Every sample of the
 run counts, as in the paper.
@@ -41,20 +46,40 @@ LOCKSTEP_WAIT_S = 5.0
 DISCOVERY_SETTLE_S = 1.0
 
 
-def load_inverse(path: str | None, mode: str):
-    """Load the inverse model file, or None in PID mode; ``ValueError`` with one sentence."""
+def load_feedforward(path: str | None, mode: str):
+    """The feedforward of a model file, or None in PID mode; ``ValueError`` with one sentence.
+
+    An inverse model is its own feedforward; a forward model with voltage channels gives a
+    ``ForwardInversionFeedforward``; any other model is refused.
+    """
     if mode == "pid":
         return None
     if not path:
         raise ValueError(f"mode '{mode}' needs --model (an inverse model file from "
                          "'ipmc identify --inverse')")
+    from ipmc_model.forward_inversion import ForwardInversionFeedforward
+    from ipmc_model.narx import InverseNarxModel, NarxModel
     from ipmc_model.persistence import load_model
 
     model = load_model(path)
-    if not hasattr(model, "stepper") or "Inverse" not in type(model).__name__:
-        raise ValueError(f"{path} holds a {type(model).__name__}, not an inverse model; make "
-                         "one with 'ipmc identify --inverse'")
-    return model
+    if isinstance(model, InverseNarxModel):
+        return model
+    if isinstance(model, NarxModel) and model.uses_voltage_channels:
+        return ForwardInversionFeedforward(model)
+    raise ValueError(f"{path} holds a {type(model).__name__}, not an inverse model nor a forward "
+                     "model with voltage channels; make one with 'ipmc identify --inverse' or "
+                     "'ipmc identify --input-memory-taus 0.3 0.5 --no-raw-voltage'")
+
+
+# The name before forward models could serve as feedforward.
+load_inverse = load_feedforward
+
+
+def is_forward_inversion(feedforward) -> bool:
+    """Whether a feedforward of :func:`load_feedforward` inverts a forward model."""
+    from ipmc_model.forward_inversion import ForwardInversionFeedforward
+
+    return isinstance(feedforward, ForwardInversionFeedforward)
 
 
 def run_in_process(model, reference: str, mode: str, effects: list[str], duration_s: float,
@@ -67,9 +92,13 @@ def run_in_process(model, reference: str, mode: str, effects: list[str], duratio
 
 
 def run_graph(model_path: str | None, reference: str, mode: str, effects: list[str],
-              duration_s: float, *, log=sys.stderr, timeout_s: float | None = None) -> dict:
+              duration_s: float, *, log=sys.stderr, timeout_s: float | None = None,
+              forward_inversion: bool = False) -> dict:
     """Run the experiment through sim_plant (lock-step), model_server, controller, reference
-    and recorder as processes; return the summary computed from the recorded bag."""
+    and recorder as processes; return the summary computed from the recorded bag.
+
+    ``forward_inversion``: ``model_path`` is a forward model with voltage channels, served by
+    model_server as ``model_file`` with ``feedforward:=forward-inversion``."""
     import rclpy
     import rclpy.executors
     from geometry_msgs.msg import PointStamped
@@ -96,6 +125,9 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     for spec in specs:
         if spec.name == "reference":
             spec.params.update(REFERENCE_PARAMS[reference])
+        if spec.name == "model_server" and forward_inversion:
+            spec.params["model_file"] = spec.params.pop("inverse_model_file")
+            spec.params["feedforward"] = "forward-inversion"
         # Lock-step means every sample waits for its command, and every command for its inputs:
         # on a loaded machine a process can stall for more than the defaults (0.2 s, 0.05 s),
         # and a plant stepping on without the command is no longer the in-process loop.
@@ -201,7 +233,9 @@ def main(argv: list[str] | None = None) -> int:
         prog="ipmc track",
         description="Track the paper's references on the simulated IPMC with PID, inverse "
                     "feedforward or both (hybrid); in process or through the ROS graph.")
-    parser.add_argument("--model", help="inverse model file (ipmc identify --inverse)")
+    parser.add_argument("--model", help="inverse model file (ipmc identify --inverse), or a "
+                                        "forward model with voltage channels (ipmc identify "
+                                        "--input-memory-taus ...), then inverted online")
     parser.add_argument("--reference", required=True, choices=REFERENCES)
     parser.add_argument("--mode", required=True, choices=MODES)
     parser.add_argument("--graph", action="store_true",
@@ -215,10 +249,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     duration = args.seconds or DEFAULT_DURATION_S[args.reference]
     try:
-        model = load_inverse(args.model, args.mode)
+        model = load_feedforward(args.model, args.mode)
         if args.graph:
             summary = run_graph(args.model, args.reference, args.mode, args.plant_effect,
-                                duration)
+                                duration, forward_inversion=is_forward_inversion(model))
         else:
             result = run_in_process(model, args.reference, args.mode, args.plant_effect,
                                     duration)

@@ -140,13 +140,14 @@ class ForwardInversionFeedforward:
         """A fresh sample-by-sample feedforward; see :class:`ForwardInversionStepper`.
 
         ``u_history``: voltages (V, oldest first) it applied before, replayed from rest so that
-        a restarted feedforward (model_server's reload) continues where the last one was;
-        default none: from rest."""
+        a restarted feedforward (model_server's reload) continues where the last one was
+        (``record_applied`` then replaces the last of them); default none: from rest."""
         st = ForwardInversionStepper(self)
         if u_history is not None:
             for u in np.atleast_1d(np.asarray(u_history, dtype=float)):
                 if not np.isfinite(u):
                     raise ValueError(f"u_history must hold finite voltages (V), got {u!r}")
+                st._saved = (st._ub.copy(), st._yb.copy(), st._mem.copy(), st._u_prev)
                 st._advance(min(self.u_limit_v, max(-self.u_limit_v, float(u))))
         return st
 

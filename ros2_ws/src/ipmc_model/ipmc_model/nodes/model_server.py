@@ -6,10 +6,15 @@ either may be empty, and what needs a missing model is simply not published.
 
 - ``/ipmc/reference`` (PointStamped, x in m) -> ``/ipmc/feedforward`` (Vector3Stamped, x in V,
   |x| <= ``u_max_v``, the reference's header copied, so the controller pairs them by stamp):
-  one step of the inverse model's stepper per reference sample. The voltage history the inverse
-  sees is set by ``history_voltage``: ``applied`` (the latest ``/ipmc/voltage`` applied voltage
-  when one arrived since the previous step, else the clamped feedforward), ``clamped`` or
-  ``model`` (its own unclamped output, as the in-process ``ipmc track`` loop).
+  one feedforward step per reference sample, from the source ``feedforward`` chooses:
+  ``inverse`` (the inverse model's stepper), ``forward-inversion`` (the forward model, if it
+  has voltage channels (``ipmc identify --input-memory-taus``), inverted sample by sample:
+  ``ipmc_model.forward_inversion``, about 0.5 ms a step) or ``auto`` (the inverse model if
+  there is one, else the forward inversion if the forward model allows it, else none). The
+  voltage history the feedforward sees is set by ``history_voltage``: ``applied`` (the latest
+  ``/ipmc/voltage`` applied voltage when one arrived since the previous step, else the clamped
+  feedforward), ``clamped`` or ``model`` (its own unclamped output; ``ipmc track`` runs
+  ``clamped``, as its in-process loop).
 - ``/ipmc/voltage`` (Vector3Stamped, x applied V) -> ``/ipmc/predicted`` (PointStamped, x in m,
   the voltage's header): one free-run step of the forward model per applied sample.
 - ``/ipmc/displacement`` (PointStamped, x in m) paired with the prediction of the same header
@@ -25,8 +30,9 @@ either may be empty, and what needs a missing model is simply not published.
   for ``monitor_patience`` checks in a row (drift, dehydration). ``monitor_residual:=one_step``
   gives the former Ljung-Box whiteness test on the one-step residual (``monitor_test:=auto``).
 
-Each message costs one kernel row per model (two for a voltage: free-run and one-step); the
-node keeps no timers on the ROS clock, so it runs as well under ``use_sim_time:=true`` with
+Each message costs one kernel row per model (two for a voltage: free-run and one-step; a
+reference served by forward inversion: 47 rows, batched); the node keeps no timers on the ROS
+clock, so it runs as well under ``use_sim_time:=true`` with
 ``sim_plant`` in lock-step.
 """
 
@@ -47,6 +53,7 @@ from std_srvs.srv import Trigger
 
 from ipmc_driver.dataio import stamp_ns
 from ipmc_driver.node_runtime import run_node
+from ipmc_model.forward_inversion import ForwardInversionFeedforward
 from ipmc_model.narx import InverseNarxModel, NarxModel
 from ipmc_model.persistence import load_model
 from ipmc_model.residuals import ResidualMonitor
@@ -63,6 +70,7 @@ DIAGNOSTICS_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
 HARDWARE_ID = "ipmc"
 U_LIMIT_V = 3.0  # the actuators' safe limit (paper section 2.1); u_max_v may only be lower
 HISTORY_VOLTAGES = ("applied", "clamped", "model")
+FEEDFORWARDS = ("auto", "inverse", "forward-inversion")
 MONITOR_RESIDUALS = ("one_step", "free_run")
 MONITOR_TESTS = ("auto", "drift", "whiteness", "both")
 # monitor_test auto: the test that works on each residual (docs/diagnose.md, "Online monitor").
@@ -106,17 +114,56 @@ def load_model_set(model_file: str, inverse_model_file: str = ""):
     if inverse_model_file:
         m = load_model(inverse_model_file)
         if not isinstance(m, InverseNarxModel):
+            hint = (" A forward model with voltage channels goes in model_file: "
+                    "feedforward:=auto inverts it." if isinstance(m, NarxModel)
+                    and m.uses_voltage_channels else "")
             raise ModelSetError(f"{inverse_model_file}: inverse_model_file holds a "
                                 f"{type(m).__name__}, not an inverse model "
-                                "(ipmc identify --inverse).")
+                                f"(ipmc identify --inverse).{hint}")
         if inverse is not None:
             raise ModelSetError(f"{model_file} and {inverse_model_file} are both inverse models; "
                                 "model_file should be the forward one.")
         inverse = m
-    if forward is not None and forward.n_inputs_ != 1:
+    if forward is not None and forward.n_inputs_ != 1 and not forward.uses_voltage_channels:
         raise ModelSetError(f"{model_file}: the forward model takes {forward.n_inputs_} input "
                             "channels; the model server has only the voltage.")
     return forward, inverse
+
+
+def choose_feedforward(feedforward: str, forward, inverse) -> str:
+    """The feedforward source for a ``feedforward`` parameter and the loaded models.
+
+    Returns
+    -------
+    str
+        ``"inverse"``, ``"forward-inversion"`` or ``"none"`` (auto without a usable model).
+
+    Raises
+    ------
+    ModelSetError
+        An explicit choice the models cannot serve, in one sentence.
+    """
+    invertible = forward is not None and forward.uses_voltage_channels
+    if feedforward == "inverse":
+        if inverse is None:
+            raise ModelSetError("feedforward:=inverse needs an inverse model "
+                                "(inverse_model_file, from ipmc identify --inverse).")
+        return "inverse"
+    if feedforward == "forward-inversion":
+        if forward is None:
+            raise ModelSetError("feedforward:=forward-inversion needs a forward model in "
+                                "model_file.")
+        if not invertible:
+            raise ModelSetError("feedforward:=forward-inversion needs a forward model with "
+                                "voltage channels (ipmc identify --input-memory-taus 0.3 0.5 "
+                                "--no-raw-voltage --output-lags 0); this one takes the "
+                                "voltage itself.")
+        return "forward-inversion"
+    if feedforward != "auto":
+        raise ModelSetError(f"feedforward must be one of {FEEDFORWARDS}, got {feedforward!r}.")
+    if inverse is not None:
+        return "inverse"
+    return "forward-inversion" if invertible else "none"
 
 
 def _stamp_ns(msg) -> int:
@@ -128,7 +175,18 @@ def _describe(model) -> str:
         return "none"
     narx = model.narx_ if isinstance(model, InverseNarxModel) else model
     kind = "lssvm-narx-inverse" if isinstance(model, InverseNarxModel) else "lssvm-narx"
-    return f"{kind} ({narx.regressor_.centers_.shape[0]} centres, max lag {narx.max_lag_})"
+    channels = ""
+    if narx.uses_voltage_channels:
+        taus = ", ".join(f"{float(t):g}" for t in narx.input_memory_taus_s)
+        channels = (f", voltage channels: low-passed {taus} s"
+                    f"{' and the voltage' if narx.include_voltage else ''}")
+    return (f"{kind} ({narx.regressor_.centers_.shape[0]} centres, max lag {narx.max_lag_}"
+            f"{channels})")
+
+
+# What /diagnostics calls each feedforward source.
+FEEDFORWARD_NAMES = {"inverse": "inverse model", "forward-inversion":
+                     "forward-model inversion", "none": "none"}
 
 
 class ModelServer(Node):
@@ -145,6 +203,10 @@ class ModelServer(Node):
         self.declare_parameter("history_voltage", "applied", d(
             description="voltage history of the inverse model: applied (latest /ipmc/voltage) "
                         "| clamped (own output, limited) | model (own output)"))
+        self.declare_parameter("feedforward", "auto", d(
+            description="feedforward source: auto (the inverse model if given, else the "
+                        "forward model inverted if it has voltage channels) | inverse | "
+                        "forward-inversion (about 0.5 ms per sample)", read_only=True))
         # The staleness monitor (all read-only: it is built once; a reload restarts it).
         self.declare_parameter("monitor_residual", "free_run", d(
             description="residual fed to the staleness monitor: free_run (measured - free-run "
@@ -189,8 +251,11 @@ class ModelServer(Node):
         self.inverse_model_file = g("inverse_model_file").value
         self.u_max_v = float(g("u_max_v").value)
         self.history_voltage = g("history_voltage").value
+        self.feedforward = g("feedforward").value
         self.monitor_residual = g("monitor_residual").value
         problem = self._check(u_max_v=self.u_max_v, history_voltage=self.history_voltage)
+        if self.feedforward not in FEEDFORWARDS:
+            problem = f"feedforward must be one of {FEEDFORWARDS}, got {self.feedforward!r}"
         if self.monitor_residual not in MONITOR_RESIDUALS:
             problem = (f"monitor_residual must be one of {MONITOR_RESIDUALS}, "
                        f"got {self.monitor_residual!r}")
@@ -203,6 +268,8 @@ class ModelServer(Node):
 
         # Models and their steppers; the histories re-seed the steppers after a reload.
         self.forward = self.inverse = None
+        self.ff_source = "none"   # what serves /ipmc/feedforward: inverse | forward-inversion
+        self._inversion: ForwardInversionFeedforward | None = None
         self._free = self._one = self._ff = None
         self._one_stamp: int | None = None    # stamp of the one-step stepper's last step
         self._sample_hist: deque = deque(maxlen=HISTORY_DEPTH)   # (u applied V, y measured mm)
@@ -290,17 +357,22 @@ class ModelServer(Node):
             return False, "no model file given (parameters model_file, inverse_model_file)"
         try:
             forward, inverse = load_model_set(self.model_file, self.inverse_model_file)
+            source = choose_feedforward(self.feedforward, forward, inverse)
+            inversion = (ForwardInversionFeedforward(forward, u_limit_v=U_LIMIT_V)
+                         if source == "forward-inversion" else None)
         except (ValueError, OSError) as exc:  # ModelFileError and ModelSetError are ValueErrors
             self.load_error = str(exc)
             return False, str(exc)
         self.forward, self.inverse = forward, inverse
+        self.ff_source, self._inversion = source, inversion
         self._restart_steppers()
         self.monitor.reset()
         self._e_free.clear()
         self._e_one.clear()
         self.load_error = ""
         self.loaded_at = time.strftime("%Y-%m-%d %H:%M:%S")
-        msg = f"forward {_describe(forward)}, inverse {_describe(inverse)}"
+        msg = (f"forward {_describe(forward)}, inverse {_describe(inverse)}, feedforward "
+               f"{FEEDFORWARD_NAMES[source]}")
         self.get_logger().info(f"loaded {self._files()}: {msg}")
         return True, msg
 
@@ -315,8 +387,15 @@ class ModelServer(Node):
         if self.forward is not None:
             self._free = self.forward.stepper(*self._history(self._sample_hist))
             self._one = self.forward.stepper(*self._history(self._sample_hist))
-        if self.inverse is not None:
-            self._ff = self.inverse.stepper(*self._history(self._ff_hist))
+        self._ff = self._new_feedforward(self._ff_hist)
+
+    def _new_feedforward(self, history):
+        """A feedforward stepper of the chosen source, seeded with (y desired mm, u V) pairs."""
+        if self.ff_source == "inverse":
+            return self.inverse.stepper(*self._history(history))
+        if self.ff_source == "forward-inversion":
+            return self._inversion.stepper(self._history(history)[1])
+        return None
 
     @staticmethod
     def _history(pairs) -> tuple:
@@ -358,7 +437,7 @@ class ModelServer(Node):
             self.get_logger().warn("inverse model diverged: restarted it from rest",
                                    throttle_duration_sec=1.0)
             self._ff_hist.clear()
-            self._ff = self.inverse.stepper()
+            self._ff = self._new_feedforward(self._ff_hist)
             return
         u_ff = min(self.u_max_v, max(-self.u_max_v, u))
         if u_ff != u:
@@ -465,6 +544,7 @@ class ModelServer(Node):
     def _diag_model(self) -> DiagnosticStatus:
         info = dict(model_file=self.model_file, inverse_model_file=self.inverse_model_file,
                     forward=_describe(self.forward), inverse=_describe(self.inverse),
+                    feedforward=self.feedforward, feedforward_source=self.ff_source,
                     loaded_at=self.loaded_at, reloads=self.reloads,
                     failed_reloads=self.failed_reloads, last_error=self.load_error)
         if self.forward is None and self.inverse is None:
@@ -481,12 +561,16 @@ class ModelServer(Node):
     def _diag_feedforward(self) -> DiagnosticStatus:
         if self._ff is None:
             return self._status("feedforward", DiagnosticStatus.OK,
-                                "not served (no inverse model)")
+                                "not served (no inverse model, and no forward model with "
+                                "voltage channels to invert)", source="none",
+                                feedforward=self.feedforward)
         frac = self.ff_clamped / self.ff_count if self.ff_count else 0.0
         level = DiagnosticStatus.WARN if frac > 0.5 else DiagnosticStatus.OK
-        msg = (f"{self.ff_rate_hz:.1f} Hz, {100 * frac:.0f} % clamped" if self.ff_count
-               else "waiting for /ipmc/reference")
-        return self._status("feedforward", level, msg, rate_hz=f"{self.ff_rate_hz:.2f}",
+        name = FEEDFORWARD_NAMES[self.ff_source]
+        msg = (f"{name}: {self.ff_rate_hz:.1f} Hz, {100 * frac:.0f} % clamped" if self.ff_count
+               else f"{name}: waiting for /ipmc/reference")
+        return self._status("feedforward", level, msg, source=self.ff_source,
+                            feedforward=self.feedforward, rate_hz=f"{self.ff_rate_hz:.2f}",
                             count=self.ff_count, clamped=self.ff_clamped,
                             skipped=self.ff_skipped, last_v=f"{self.ff_last_v:.4f}",
                             u_max_v=self.u_max_v, history_voltage=self.history_voltage)
@@ -528,6 +612,7 @@ def main(args: list[str] | None = None) -> None:
              usage="model_server [--ros-args -p model_file:=MODEL.json "
                    "-p inverse_model_file:=INVERSE.json -p u_max_v:=3.0 "
                    "-p history_voltage:=applied|clamped|model "
+                   "-p feedforward:=auto|inverse|forward-inversion "
                    "-p monitor_residual:=free_run|one_step "
                    "-p monitor_test:=auto|drift|whiteness|both -p use_sim_time:=true]\n"
                    "service: /model_server/reload (std_srvs/srv/Trigger)")
