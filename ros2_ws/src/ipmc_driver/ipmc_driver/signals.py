@@ -66,3 +66,31 @@ def random_steps(seconds: float, rate_hz: float = 100.0, amplitude: float = 3.0,
         x[i:i + n] = rng.uniform(-amplitude, amplitude)
         i += n
     return t, x
+
+
+def mixed(seconds: float, rate_hz: float = 100.0, amplitude: float = 3.0,
+          band_hz: tuple[float, float] = (0.02, 0.8), seed: int | None = 0
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """Identification input that covers the operating range in amplitude AND frequency.
+
+    Three parts, one after the other: a random sine over ``band_hz`` (half the time), a random
+    sine over the band's slow quarter ``(low, high / 4)`` (a quarter), then random levels held
+    0.5-5 s (a quarter), all with peak ``amplitude`` (V). Why: a nonlinear model fitted on a
+    fast random sine alone rarely sees large voltages held long (its peaks are brief), so it
+    extrapolates on a slow full-range sine; the slow part and the held levels put data there
+    (the amplitude-modulated PRBS habit of nonlinear identification).
+    """
+    lo, hi = band_hz
+    if not 0 <= lo < hi / 4:
+        raise ValueError(f"band_hz must satisfy 0 <= low < high / 4, got {band_hz}")
+    n = time_axis(seconds, rate_hz).size
+    if n < 4:
+        raise ValueError(f"seconds * rate_hz must give at least 4 samples, got {n}")
+    seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=3)
+    n_fast, n_slow = n // 2, n // 4
+    n_steps = n - n_fast - n_slow
+    fast = random_sine(n_fast / rate_hz, rate_hz, amplitude, (lo, hi), seed=int(seeds[0]))[1]
+    slow = random_sine(n_slow / rate_hz, rate_hz, amplitude, (lo, hi / 4), seed=int(seeds[1]))[1]
+    held = random_steps(n_steps / rate_hz, rate_hz, amplitude, seed=int(seeds[2]))[1]
+    x = np.concatenate([fast[:n_fast], slow[:n_slow], held[:n_steps]])
+    return np.arange(n) / float(rate_hz), x

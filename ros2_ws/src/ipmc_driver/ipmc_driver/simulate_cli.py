@@ -7,9 +7,9 @@ import sys
 
 from .dataio import Record, save_csv
 from .plant import EFFECTS, IpmcPlant, load_plant_params
-from .signals import random_sine, random_steps, sine
+from .signals import mixed, random_sine, random_steps, sine
 
-INPUTS = ("sine", "random-sine", "steps")
+INPUTS = ("sine", "random-sine", "steps", "mixed")
 
 
 def make_input(kind: str, *, amplitude_v: float, frequency_hz: float, seconds: float,
@@ -23,6 +23,9 @@ def make_input(kind: str, *, amplitude_v: float, frequency_hz: float, seconds: f
                            seed=seed)
     if kind == "steps":
         return random_steps(seconds, rate_hz, amplitude_v, seed=seed)
+    if kind == "mixed":
+        # Random sine over the band, a slow random sine, then held levels: see signals.mixed.
+        return mixed(seconds, rate_hz, amplitude_v, band_hz=(0.02, frequency_hz), seed=seed)
     raise ValueError(f"unknown input '{kind}'; choose one of {', '.join(INPUTS)}")
 
 
@@ -34,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="drive signal (default random-sine)")
     parser.add_argument("--amplitude", type=float, default=3.0, help="peak voltage, V")
     parser.add_argument("--frequency", type=float, default=0.8,
-                        help="sine frequency, or top of the random-sine band, Hz")
+                        help="sine frequency, or top of the random-sine (and mixed) band, Hz")
     parser.add_argument("--seconds", type=float, default=120.0, help="duration, s")
     parser.add_argument("--rate-hz", type=float, default=100.0, help="sample rate, Hz")
     parser.add_argument("--seed", type=int, default=0, help="seed of the input and the noise")

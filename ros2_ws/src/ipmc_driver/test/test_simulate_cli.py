@@ -7,7 +7,7 @@ from ipmc_driver.cli import main as ipmc
 from ipmc_driver.dataio import load_record
 
 
-@pytest.mark.parametrize("kind", ["sine", "random-sine", "steps"])
+@pytest.mark.parametrize("kind", ["sine", "random-sine", "steps", "mixed"])
 def test_simulate_writes_t_u_y_in_seconds_volts_mm(tmp_path, kind):
     out = tmp_path / "run.csv"
     assert ipmc(["simulate", "--input", kind, "--amplitude", "2", "--frequency", "0.5",
@@ -39,3 +39,32 @@ def test_simulate_refuses_an_unknown_effect(tmp_path, capsys):
     with pytest.raises(SystemExit):
         ipmc(["simulate", "--effect", "humidity", "--out", str(tmp_path / "x.csv")])
     assert "invalid choice: 'humidity'" in capsys.readouterr().err
+
+
+def test_mixed_input_has_a_fast_part_a_slow_part_and_held_levels():
+    from ipmc_driver.signals import mixed
+
+    t, u = mixed(400.0, 100.0, 2.5, band_hz=(0.02, 0.8), seed=3)
+    assert u.size == t.size == 40000 and np.abs(u).max() == pytest.approx(2.5)
+    fast, slow, held = u[:20000], u[20000:30000], u[30000:]
+
+    def top_hz(x):  # frequency below which 99 % of the power lies
+        p = np.abs(np.fft.rfft(x - x.mean())) ** 2
+        f = np.fft.rfftfreq(x.size, 0.01)
+        return f[np.searchsorted(np.cumsum(p) / p.sum(), 0.99)]
+
+    assert 0.3 < top_hz(fast) <= 0.8 and top_hz(slow) <= 0.2
+    # The held part: levels held 0.5-5 s, so few changes and long runs of one value.
+    changes = np.flatnonzero(np.diff(held))
+    assert 100 / 5 <= changes.size + 1 <= 100 / 0.5
+    assert np.abs(held).max() > 2.0  # reaches high levels and holds them
+    same = mixed(400.0, 100.0, 2.5, band_hz=(0.02, 0.8), seed=3)[1]
+    np.testing.assert_array_equal(u, same)
+    assert not np.array_equal(u, mixed(400.0, 100.0, 2.5, band_hz=(0.02, 0.8), seed=4)[1])
+
+
+def test_mixed_input_refuses_a_band_without_a_slow_quarter():
+    from ipmc_driver.signals import mixed
+
+    with pytest.raises(ValueError, match="band_hz"):
+        mixed(60.0, band_hz=(0.3, 0.8))
