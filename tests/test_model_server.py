@@ -272,3 +272,98 @@ def test_help_prints_usage_and_exits_zero(ros_env):
                          capture_output=True, text=True, timeout=30)
     assert out.returncode == 0
     assert "usage: model_server" in out.stdout and "reload" in out.stdout
+
+
+@pytest.fixture(scope="module")
+def channel_forward(tmp_path_factory):
+    """A forward model with voltage channels (NFIR on the voltage low-passed at 0.3, 0.5 s)."""
+    from ipmc_model.lssvm import FixedSizeLSSVMRegressor
+    from ipmc_model.narx import NarxModel
+    from ipmc_model.persistence import save_model
+
+    _, u = random_sine(30.0, 100.0, amplitude=2.5, seed=1)
+    run = IpmcPlant(seed=1).run(u)
+    reg = FixedSizeLSSVMRegressor(C=1e5, sigma=1.0, n_prototypes=200, seed=0)
+    model = NarxModel(reg, input_lags=0, output_lags=0, input_memory_taus_s=(0.3, 0.5),
+                      include_voltage=False).fit(run.u_v, run.y_mm)
+    return model, save_model(model, tmp_path_factory.mktemp("channels") / "forward.json")
+
+
+def test_choose_feedforward_follows_the_parameter_and_the_models(model_files, channel_forward):
+    from ipmc_model.nodes.model_server import ModelSetError, choose_feedforward
+
+    plain, _, inverse, _ = model_files
+    channels, _ = channel_forward
+    assert choose_feedforward("auto", channels, inverse) == "inverse"
+    assert choose_feedforward("auto", channels, None) == "forward-inversion"
+    assert choose_feedforward("auto", plain, None) == "none"
+    assert choose_feedforward("forward-inversion", channels, inverse) == "forward-inversion"
+    with pytest.raises(ModelSetError, match="needs a forward model with voltage channels"):
+        choose_feedforward("forward-inversion", plain, inverse)
+    with pytest.raises(ModelSetError, match="needs an inverse model"):
+        choose_feedforward("inverse", channels, None)
+
+
+def test_serves_feedforward_by_inverting_a_forward_model(
+        channel_forward, processes, rclpy_context, spin):
+    from ipmc_model.forward_inversion import ForwardInversionFeedforward
+
+    model, path = channel_forward
+    processes.start_node("sim_plant", "sim_plant", {"rate_hz": 100.0})
+    processes.start_node("model_server", "model_server", {
+        "model_file": path, "history_voltage": "clamped", "diagnostics_period_s": 0.5})
+    probe = Probe(rclpy_context)
+    node = probe.node
+    try:
+        assert spin(node, lambda: probe.pub_ref.get_subscription_count() > 0
+                    and probe.pub_cmd.get_subscription_count() > 0
+                    and node.count_publishers("/ipmc/feedforward") > 0
+                    and len(probe.got["residual"]) > 0, 30.0), processes.log("model_server")
+        spin(node, lambda: False, 0.3)
+        probe.start_driving()
+        assert spin(node, lambda: probe._k >= 500, 25.0)
+        probe._timer.cancel()
+        spin(node, lambda: len(probe.got["feedforward"]) >= len(probe.refs), 5.0)
+        # One feedforward per reference, same stamps, the in-process forward inversion's values.
+        ff = probe.got["feedforward"]
+        assert [_stamp_ns(m) for m in ff] == [s for s, _ in probe.refs]
+        stepper = ForwardInversionFeedforward(model).stepper()
+        expected = []
+        for _, r_mm in probe.refs:
+            expected.append(stepper.step(r_mm))
+            stepper.record_applied(expected[-1])
+        # (1e-6 V: the batched kernel rows round differently from one process to another)
+        np.testing.assert_allclose([m.vector.x for m in ff], expected, rtol=0, atol=1e-6)
+        assert max(abs(m.vector.x) for m in ff) <= 3.0
+        # The same forward model still predicts; /diagnostics name the feedforward's source.
+        assert len(probe.got["predicted"]) > 0 and len(probe.got["residual"]) > 0
+        assert spin(node, lambda: probe.latest("feedforward") is not None
+                    and probe.latest("feedforward").message.startswith(
+                        "forward-model inversion: "), 5.0)
+        assert _value(probe.latest("feedforward"), "source") == "forward-inversion"
+        assert _value(probe.latest("model"), "feedforward_source") == "forward-inversion"
+        assert "voltage channels" in _value(probe.latest("model"), "forward")
+    finally:
+        node.destroy_node()
+    assert processes.stop("model_server") < GRACE_S
+
+
+def test_explicit_forward_inversion_of_a_plain_forward_model_is_refused(
+        model_files, processes, rclpy_context, spin, tmp_path):
+    from ipmc_model.persistence import save_model
+
+    # A fresh file: the first test of this module corrupts the fixture's forward.json.
+    plain_file = save_model(model_files[0], tmp_path / "plain.json")
+    processes.start_node("model_server", "model_server", {
+        "model_file": plain_file, "feedforward": "forward-inversion",
+        "diagnostics_period_s": 0.5})
+    probe = Probe(rclpy_context)
+    try:
+        assert spin(probe.node, lambda: probe.latest("model") is not None, 20.0), \
+            processes.log("model_server")
+        status = probe.latest("model")
+        assert status.level == b"\x02"
+        assert "needs a forward model with voltage channels" in status.message
+    finally:
+        probe.node.destroy_node()
+    assert processes.stop("model_server") < GRACE_S
