@@ -31,8 +31,8 @@ either may be empty, and what needs a missing model is simply not published.
   gives the former Ljung-Box whiteness test on the one-step residual (``monitor_test:=auto``).
 
 Each message costs one kernel row per model (two for a voltage: free-run and one-step; a
-reference served by forward inversion: 47 rows, batched); the node keeps no timers on the ROS
-clock, so it runs as well under ``use_sim_time:=true`` with
+reference served by forward inversion: 25 + 21 rows in two batched calls, plus one or two); the
+node keeps no timers on the ROS clock, so it runs as well under ``use_sim_time:=true`` with
 ``sim_plant`` in lock-step.
 """
 
