@@ -611,38 +611,192 @@ def cross_fitted_residual(model: AugmentedModel, narx: NarxModel, u, y) -> np.nd
     return r
 
 
-def creep_taus(dt_s: float, duration_s: float, memory_s: float = 0.0) -> np.ndarray:
-    """Creep time constants searched (s): log grid from 1 s (or 20 samples, or three times the
-    baseline's memory ``memory_s``, whichever is longest) to 10 min, at most twice the record.
+def creep_taus(dt_s: float, duration_s: float, memory_s: float = 0.0, n: int = 20
+               ) -> np.ndarray:
+    """Creep time constants searched (s): ``n`` values on a log grid from 1 s (or 20 samples,
+    or three times the baseline's memory ``memory_s``, whichever is longest) to 10 min, at most
+    twice the record.
 
     Faster relaxation is inside the baseline's lag window, so the baseline models it (the
     plant's own back-relaxation, tau 0.46 s, would otherwise pass as creep)."""
     lo = max(1.0, 20 * dt_s, 3.0 * memory_s)
-    return np.geomspace(lo, max(min(600.0, 2.0 * duration_s), 2.0 * lo), 20)
+    return np.geomspace(lo, max(min(600.0, 2.0 * duration_s), 2.0 * lo), int(n))
+
+
+#: Creep fit on input holds (:func:`fit_creep_on_holds`): each hold's segment starts
+#: ``CREEP_HOLD_SKIP_S`` after the input jump. The plant's charging and back-relaxation
+#: (tau 0.3 s, 0.46 s) still move the tip by up to 0.33 mm 2 s after a 3 V step and 0.04 mm
+#: after 3 s, so each segment also gets its own fast exponential (time constant from
+#: ``CREEP_FAST_TAUS_S``, amplitude free per hold) as a nuisance term; the creep is what
+#: drifts beyond it, with one tau and gain over all holds.
+CREEP_HOLD_SKIP_S = 2.0
+#: Shortest usable segment after the skip (s).
+CREEP_HOLD_MIN_USE_S = 1.0
+#: Time constants (s) of the per-hold fast nuisance exponential (the best one is kept).
+CREEP_FAST_TAUS_S = (0.3, 0.5, 0.8)
+#: Fewest holds for the hold fit; with fewer the creep is fitted on the whole residual.
+CREEP_HOLD_MIN_HOLDS = 3
+#: Points of the creep tau grid of the hold fit (log spaced, :func:`creep_taus`).
+CREEP_HOLD_TAU_POINTS = 40
+
+
+def fit_creep_on_holds(r, u, dt_s: float, taus, *, nuisance_tau_s: float | None = None,
+                       skip_s: float = CREEP_HOLD_SKIP_S,
+                       min_use_s: float = CREEP_HOLD_MIN_USE_S,
+                       fast_taus_s=CREEP_FAST_TAUS_S,
+                       min_holds: int = CREEP_HOLD_MIN_HOLDS) -> dict:
+    """Creep tau and gain from the drift of a residual during input holds.
+
+    During a hold of the input (:func:`~ipmc_model.residuals.find_holds`) a baseline with a
+    finite input window (the diagnosis's nonlinear FIR) predicts a constant once its window
+    has passed, whatever creep it absorbed, so the residual's movement there is the creep's,
+    ``c_k - c_mean = g (x_k(tau) - x_mean(tau))`` with x the input low-passed at tau (the
+    creep state of unit gain), plus what is left of the plant's own settling. Per hold i, from
+    ``skip_s`` after its start, the residual r is projected off a constant and a fast
+    exponential ``exp(-(t - t_i) / tau_f)`` (amplitude free per hold; tau_f from
+    ``fast_taus_s``), and so are x and the nuisance (the input low-passed at
+    ``nuisance_tau_s``, one gain over all holds: the settling slower than one exponential,
+    on the plant a +0.01..+0.04 mm/V term at the baseline's 1.2 s memory, which biased tau
+    20 s to 23-29 s without it); then the gains are least squares over all holds (closed form)
+    for each tau of ``taus``, and (tau, tau_f) the pair of the smallest residual sum of squares.
+
+    The hold levels themselves are not used: they carry path memory (hysteresis) as well.
+
+    Parameters
+    ----------
+    r : array_like, shape (N,)
+        Residual (mm) of the current model; NaN samples are skipped.
+    u : array_like, shape (N,)
+        Input (V); a hold reaching the end of ``u`` is not used (it continues beyond).
+    dt_s : float
+        Sample period (s).
+    taus : array_like
+        Creep time constants searched (s).
+    nuisance_tau_s : float, optional
+        Time constant (s) of the nuisance low-passed input (default none).
+
+    Returns
+    -------
+    dict
+        ``holds`` (usable G), ``skip_s``, and when G >= ``min_holds``: ``tau_s``,
+        ``gain_mm_per_v``, ``at_edge`` (tau is the grid's longest: only g / tau is determined,
+        the hold drift looks like a ramp), ``fast_tau_s``, ``nuisance_tau_s``,
+        ``nuisance_mm_per_v`` (its gain),
+        ``segments`` (list of (start, stop) samples), ``oof_state``, an (N,) array: in each
+        used hold the creep state (mm) predicted by the fit on the *other* holds (leave one hold
+        out; NaN elsewhere), for out-of-sample evidence, and ``profile`` (rows tau_s, gain,
+        sse at the best tau_f).
+    """
+    from .residuals import find_holds
+
+    r = as_signal("r", r, allow_nan=True)
+    u = as_signal("u", u)
+    same_length(r=r, u=u)
+    taus = np.asarray(taus, dtype=float)
+    skip = int(round(skip_s / dt_s))
+    segs, idxs = [], []
+    for s, e in find_holds(u, dt_s, skip_s + min_use_s):
+        if e >= u.size:
+            continue
+        idx = np.arange(s + skip, e)
+        idx = idx[np.isfinite(r[idx])]
+        if idx.size * dt_s >= min_use_s:
+            segs.append((s, e))
+            idxs.append(idx)
+    G = len(segs)
+    out = {"holds": G, "skip_s": float(skip_s)}
+    if G < min_holds:
+        return out
+    bases = [_creep_basis(u, dt_s, tau) for tau in taus]
+    nuis = None if nuisance_tau_s is None else _creep_basis(u, dt_s, nuisance_tau_s)
+    F, T = len(fast_taus_s), taus.size
+    # per hold and tau_f: x'x, x'r (per tau), n'n, n'r, n'x (per tau), r'r after projection
+    sxx, sxr, snx = np.zeros((G, F, T)), np.zeros((G, F, T)), np.zeros((G, F, T))
+    srr, snn, snr = np.zeros((G, F)), np.zeros((G, F)), np.zeros((G, F))
+    for i, ((s, _), idx) in enumerate(zip(segs, idxs, strict=True)):
+        X0 = np.column_stack([b[idx] for b in bases])
+        for f, tf in enumerate(fast_taus_s):
+            Q, _ = np.linalg.qr(np.column_stack([np.ones(idx.size),
+                                                 np.exp(-(idx - s) * dt_s / tf)]))
+            rr = r[idx] - Q @ (Q.T @ r[idx])
+            X = X0 - Q @ (Q.T @ X0)
+            srr[i, f] = rr @ rr
+            sxx[i, f] = np.einsum("ij,ij->j", X, X)
+            sxr[i, f] = X.T @ rr
+            if nuis is not None:
+                nn = nuis[idx] - Q @ (Q.T @ nuis[idx])
+                snn[i, f], snr[i, f], snx[i, f] = nn @ nn, nn @ rr, X.T @ nn
+
+    def solve(keep):
+        """Gains (creep g, nuisance h) and SSE for every (tau_f, tau) from the holds kept."""
+        a, b, c = sxx[keep].sum(0), sxr[keep].sum(0), snx[keep].sum(0)
+        d, e, rr = snn[keep].sum(0)[:, None], snr[keep].sum(0)[:, None], srr[keep].sum(0)
+        if nuis is None:
+            g = np.where(a > 0, b / np.where(a > 0, a, 1.0), 0.0)
+            h = np.zeros_like(g)
+        else:
+            det = a * d - c * c
+            ok = det > 1e-12 * np.maximum(a * d, 1e-300)
+            g = np.where(ok, (d * b - c * e) / np.where(ok, det, 1.0), 0.0)
+            h = np.where(ok, (a * e - c * b) / np.where(ok, det, 1.0), 0.0)
+        sse = rr[:, None] - g * b - h * e
+        f, t = np.unravel_index(int(np.argmin(sse)), sse.shape)
+        return f, t, g, h, sse
+
+    f, t, g, h, sse = solve(np.ones(G, bool))
+    oof = np.full(u.size, np.nan)
+    for i, (s, e) in enumerate(segs):
+        keep = np.ones(G, bool)
+        keep[i] = False
+        fi, ti, gi, _, _ = solve(keep)
+        oof[s:e] = gi[fi, ti] * bases[ti][s:e]
+    out.update(tau_s=float(taus[t]), gain_mm_per_v=float(g[f, t]), at_edge=bool(t == T - 1),
+               fast_tau_s=float(fast_taus_s[f]),
+               nuisance_tau_s=None if nuis is None else float(nuisance_tau_s),
+               nuisance_mm_per_v=float(h[f, t]), segments=segs, oof_state=oof,
+               profile=np.column_stack([taus, g[f], sse[f]]))
+    return out
 
 
 def _fit_creep(model, narx, u, y, t, iterations):
-    """Creep from the cross-fitted free-run residual of the current structure, alternated with
-    the baseline: ``iterations`` + 1 times, the creep (tau by a log grid from seconds to
-    minutes, gain by least squares; an intercept and the input low-passed at the baseline's
-    memory, its own misfit at that time scale, are nuisance terms, not kept) is fitted on
-    y minus the out-of-fold prediction of a baseline fitted on y minus the current creep.
-    The baseline is then refitted on the data with the creep removed. The first pass's
-    cross-fitted residual (that of the current structure, mm) is kept on the effect as
-    ``fit_residual_`` for the time-behaviour evidence (:func:`~ipmc_model.residuals.
-    hold_drift_test`)."""
+    """Creep from the cross-fitted free-run residual r of the current structure (each half
+    predicted by the structure refitted on the other half: the LSSVM has not absorbed the
+    creep there), kept on the effect as ``fit_residual_`` for the time-behaviour evidence
+    (:func:`~ipmc_model.residuals.hold_drift_test`).
+
+    With at least :data:`CREEP_HOLD_MIN_HOLDS` input holds, tau and gain come from the drift
+    of r during the holds (:func:`fit_creep_on_holds`), where the creep is the only thing still
+    moving: on the whole residual the baseline's path memory (hysteresis), which a low-passed
+    input imitates, led the fit (tau at the grid's end, gain 2-5 x the plant's). The fit is kept
+    on the effect as ``hold_fit_`` (its ``oof_state`` gives the leave-one-hold-out prediction).
+
+    Without holds (fallback, the previous method): ``iterations`` + 1 times, tau by a log grid
+    from seconds to minutes and the gain by least squares on the whole r (an intercept and the
+    input low-passed at the baseline's memory, its own misfit at that time scale, as nuisance
+    terms), alternated with the baseline fitted on y minus the current creep.
+
+    Either way the baseline is then refitted on the data with the creep removed."""
     dt = model.dt_s
     mem = max(model.max_lag_ * dt, 2 * dt)
+    first_residual = cross_fitted_residual(model, narx, u, y)
+    hold = fit_creep_on_holds(first_residual, u, dt,
+                              creep_taus(dt, u.size * dt, mem, CREEP_HOLD_TAU_POINTS),
+                              nuisance_tau_s=mem)
+    if "tau_s" in hold:
+        eff = Effect("creep", tau_s=hold["tau_s"], gain_mm_per_v=hold["gain_mm_per_v"])
+        eff.fit_residual_ = first_residual
+        eff.hold_fit_ = hold
+        return model.refit(narx, u, y, model.effects + [eff]), eff
     nuis = _creep_basis(u, dt, mem)
     taus = creep_taus(dt, u.size * dt, mem)
     bases = [_creep_basis(u, dt, tau) for tau in taus]
     cur = model
     eff = None
     for _ in range(int(iterations) + 1):
-        c_now = eff.creep_state(u, dt) if eff is not None else 0.0
-        r = cross_fitted_residual(cur, narx, u, y) + c_now  # y - out-of-fold baseline part
         if eff is None:
-            first_residual = r.copy()
+            r = first_residual
+        else:  # y - out-of-fold baseline part
+            r = cross_fitted_residual(cur, narx, u, y) + eff.creep_state(u, dt)
         ok = np.isfinite(r)
         best = None
         for tau, xb in zip(taus, bases, strict=True):
@@ -654,6 +808,7 @@ def _fit_creep(model, narx, u, y, t, iterations):
         eff = Effect("creep", tau_s=float(best[1]), gain_mm_per_v=float(best[2]))
         cur = AugmentedModel(model.baseline, model.effects + [eff], dt)
     eff.fit_residual_ = first_residual
+    eff.hold_fit_ = hold
     return model.refit(narx, u, y, model.effects + [eff]), eff
 
 

@@ -253,7 +253,8 @@ def find_holds(u, dt_s: float, min_s: float, tol_fraction: float = HOLD_TOL_FRAC
 
 def hold_drift_test(r, x, u, dt_s: float, *, skip_s: float = HOLD_SKIP_S,
                     min_use_s: float = 1.0, beta_min: float = HOLD_BETA_MIN,
-                    alpha: float = 0.05, min_holds: int = 3) -> dict:
+                    alpha: float = 0.05, min_holds: int = 3,
+                    fast_tau_s: float | None = None, nuisance=None) -> dict:
     """Does the residual ``r`` (mm) keep drifting during input holds as the signal ``x`` (mm)
     predicts? The time-behaviour evidence of creep.
 
@@ -271,6 +272,11 @@ def hold_drift_test(r, x, u, dt_s: float, *, skip_s: float = HOLD_SKIP_S,
     enough on a nearly noise-free residual (the clean plant's last hundredths of a millimetre of
     settling are "significant" against 0).
 
+    With ``fast_tau_s`` the plant's own settling after the input jump is a nuisance too: per
+    hold, r and x are taken off a constant *and* ``exp(-(t - t_start) / fast_tau_s)``
+    (amplitude free per hold), as in the creep's hold fit
+    (:func:`~ipmc_model.effects.fit_creep_on_holds`); then a shorter ``skip_s`` is usable.
+
     Parameters
     ----------
     r : array_like, shape (N,)
@@ -281,6 +287,12 @@ def hold_drift_test(r, x, u, dt_s: float, *, skip_s: float = HOLD_SKIP_S,
         Input (V).
     dt_s : float
         Sample period (s).
+    fast_tau_s : float, optional
+        Time constant (s) of the per-hold fast exponential nuisance; default none (hold means
+        only).
+    nuisance : array_like, shape (N,), optional
+        A signal with one coefficient over all holds taken off r and x before beta (as in the
+        creep's hold fit: the input low-passed at the baseline's memory).
 
     Returns
     -------
@@ -292,14 +304,29 @@ def hold_drift_test(r, x, u, dt_s: float, *, skip_s: float = HOLD_SKIP_S,
     u = as_signal("u", u)
     if not (r.shape == x.shape == u.shape):
         raise ValueError(f"r, x, u must have the same shape, got {r.shape}, {x.shape}, {u.shape}")
+    n = None if nuisance is None else as_signal("nuisance", nuisance)
+    if n is not None and n.shape != u.shape:
+        raise ValueError(f"nuisance must have the shape of u {u.shape}, got {n.shape}")
     skip = int(round(skip_s / dt_s))
-    blocks = []
+    blocks, nblocks = [], []
     for s, e in find_holds(u, dt_s, skip_s + min_use_s):
         idx = np.arange(s + skip, e)
         idx = idx[np.isfinite(r[idx]) & np.isfinite(x[idx])]
         if idx.size * dt_s < min_use_s:
             continue
-        blocks.append((r[idx] - r[idx].mean(), x[idx] - x[idx].mean()))
+        cols = [np.ones(idx.size)]
+        if fast_tau_s is not None:
+            cols.append(np.exp(-(idx - s) * dt_s / fast_tau_s))
+        Q, _ = np.linalg.qr(np.column_stack(cols))
+        blocks.append((r[idx] - Q @ (Q.T @ r[idx]), x[idx] - Q @ (Q.T @ x[idx])))
+        if n is not None:
+            nblocks.append(n[idx] - Q @ (Q.T @ n[idx]))
+    snn = sum(float(bn @ bn) for bn in nblocks)
+    if snn > 0.0:  # Frisch-Waugh: take the nuisance off r and x over all holds
+        kr = sum(float(bn @ br) for bn, (br, _) in zip(nblocks, blocks, strict=True)) / snn
+        kx = sum(float(bn @ bx) for bn, (_, bx) in zip(nblocks, blocks, strict=True)) / snn
+        blocks = [(br - kr * bn, bx - kx * bn)
+                  for bn, (br, bx) in zip(nblocks, blocks, strict=True)]
     G = len(blocks)
     out = {"holds": G, "beta": float("nan"), "se": float("nan"), "lower": float("nan"),
            "significant": False, "skip_s": float(skip_s), "beta_min": float(beta_min)}
@@ -314,7 +341,9 @@ def hold_drift_test(r, x, u, dt_s: float, *, skip_s: float = HOLD_SKIP_S,
     se = float(np.sqrt(meat * G / (G - 1))) / sxx
     lower = beta - float(stats.t.ppf(1.0 - alpha, G - 1)) * se
     out.update(beta=beta, se=se, lower=lower, significant=bool(lower > beta_min))
-    out["text"] = (f"drift during {G} input holds (after {skip_s:g} s): residual follows "
+    fast = "" if fast_tau_s is None else f", fast settling tau {fast_tau_s:g} s removed"
+    out["fast_tau_s"] = None if fast_tau_s is None else float(fast_tau_s)
+    out["text"] = (f"drift during {G} input holds (after {skip_s:g} s{fast}): residual follows "
                    f"{beta:.2f} +- {se:.2f} of the predicted drift, {100 * (1 - alpha):.0f} % "
                    f"lower bound {lower:.2f}, needs > {beta_min:g}")
     return out
