@@ -42,3 +42,32 @@ def test_launch_file_starts_the_same_graph_as_bringup(name, rig):
     specs = graph_specs(rig_port=rig, lockstep=False, model="m.json", mode="hybrid",
                         reference="sine", plant_effects=[], record="bag")
     assert launched == sorted(s.executable for s in specs)
+
+
+def test_bringup_serves_each_kind_of_feedforward_model_as_model_server_expects(tmp_path):
+    from ipmc_control.bringup import feedforward_server_params
+    from ipmc_driver.cli import main as ipmc
+
+    data = tmp_path / "d.csv"
+    assert ipmc(["simulate", "--input", "mixed", "--seconds", "20", "--seed", "2",
+                 "--out", str(data)]) == 0
+    fwd, inv, plain = tmp_path / "fwd.json", tmp_path / "inv.json", tmp_path / "plain.json"
+    common = ["--data", str(data), "--model", "lssvm-narx", "--tune", "none", "--C", "100",
+              "--sigma", "1", "--prototypes", "50"]
+    assert ipmc(["identify", *common, "--input-memory-taus", "0.3", "0.5", "--no-raw-voltage",
+                 "--out", str(fwd)]) == 0
+    assert ipmc(["identify", *common, "--inverse", "--output-lags", "2", "--out", str(inv)]) == 0
+    assert ipmc(["identify", *common, "--input-lags", "2", "--output-lags", "2",
+                 "--out", str(plain)]) == 0
+    assert feedforward_server_params(str(fwd)) == {"model_file": str(fwd.resolve()),
+                                                   "feedforward": "forward-inversion"}
+    assert feedforward_server_params(str(inv)) == {"inverse_model_file": str(inv.resolve())}
+    # Not a feedforward model, or not a model: model_server gets it as the inverse and says why.
+    assert feedforward_server_params(str(plain)) == {"inverse_model_file": str(plain.resolve())}
+    assert feedforward_server_params(str(tmp_path / "none.json")) == {
+        "inverse_model_file": str((tmp_path / "none.json").resolve())}
+    specs = graph_specs(rig_port=None, lockstep=True, model=str(fwd), mode="hybrid",
+                        reference="sine", plant_effects=[], record=None)
+    server = next(s for s in specs if s.name == "model_server")
+    assert server.params["feedforward"] == "forward-inversion"
+    assert server.params["model_file"] == str(fwd.resolve())

@@ -4,8 +4,11 @@
 ``launch/rig.launch.py`` as child processes of one command, prints where their logs go, and on
 Ctrl-C (or SIGTERM) stops them all: SIGINT first, SIGKILL after a grace period.
 
-    ipmc bringup --sim [--lockstep] [--model INVERSE.json] [--mode hybrid] [--reference sine]
-    ipmc bringup --rig /dev/ttyUSB0 --model INVERSE.json --record run1
+    ipmc bringup --sim [--lockstep] [--model MODEL.json] [--mode hybrid] [--reference sine]
+    ipmc bringup --rig /dev/ttyUSB0 --model MODEL.json --record run1
+
+MODEL is an inverse model (``ipmc identify --inverse``) or a forward model with voltage channels
+(``ipmc identify --input-memory-taus ...``), which model_server inverts online.
 """
 
 from __future__ import annotations
@@ -105,6 +108,27 @@ class Graph:
         self.stop_all()
 
 
+def feedforward_server_params(model: str) -> dict:
+    """model_server parameters that serve the model file ``model`` as the feedforward.
+
+    An inverse model (``ipmc identify --inverse``) goes to ``inverse_model_file``; a forward
+    model with voltage channels (``ipmc identify --input-memory-taus ...``) to ``model_file``
+    with ``feedforward:=forward-inversion`` (it also serves predictions and the residual). A
+    file that cannot be read goes to ``inverse_model_file``: model_server then says why.
+    """
+    from ipmc_model.persistence import ModelFileError, read_model_document
+
+    path = str(Path(model).resolve())
+    try:
+        doc = read_model_document(path)
+    except ModelFileError:
+        return {"inverse_model_file": path}
+    params = (doc.get("model") or {}).get("params") or {}
+    if doc["kind"] == "lssvm-narx" and params.get("input_memory_taus_s"):
+        return {"model_file": path, "feedforward": "forward-inversion"}
+    return {"inverse_model_file": path}
+
+
 def graph_specs(*, rig_port: str | None, lockstep: bool, model: str | None, mode: str,
                 reference: str, plant_effects: list[str], record: str | None,
                 rate_hz: float = 100.0) -> list[NodeSpec]:
@@ -119,7 +143,7 @@ def graph_specs(*, rig_port: str | None, lockstep: bool, model: str | None, mode
     if model:
         # clamped: the feedforward is a filter of the reference alone, as in ipmc track.
         specs.append(NodeSpec("model_server", "model_server",
-                              {**common, "inverse_model_file": str(Path(model).resolve()),
+                              {**common, **feedforward_server_params(model),
                                "history_voltage": "clamped"}))
     specs.append(NodeSpec("controller", "controller", {
         **common, "mode": mode, "rate_hz": rate_hz,
@@ -147,7 +171,8 @@ def main(argv: list[str] | None = None) -> int:
     where.add_argument("--rig", metavar="PORT", help="real rig through the driver on PORT")
     parser.add_argument("--lockstep", action="store_true",
                         help="simulation: lock-step clock, faster than real time")
-    parser.add_argument("--model", help="inverse model file for the feedforward")
+    parser.add_argument("--model", help="model file for the feedforward: an inverse model, or a "
+                        "forward model with voltage channels (inverted online)")
     parser.add_argument("--mode", default="hybrid", choices=("pid", "inverse", "hybrid"))
     parser.add_argument("--reference", default="sine",
                         help="reference kind: constant | sine | random | steps | file")
@@ -158,7 +183,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="stop after this many wall seconds (default: until Ctrl-C)")
     args = parser.parse_args(argv)
     if args.mode != "pid" and not args.model:
-        parser.error(f"--mode {args.mode} needs --model (an inverse model file)")
+        parser.error(f"--mode {args.mode} needs --model (an inverse model file, or a forward "
+                     "model with voltage channels)")
     specs = graph_specs(rig_port=args.rig, lockstep=args.lockstep, model=args.model,
                         mode=args.mode, reference=args.reference,
                         plant_effects=args.plant_effect, record=args.record)

@@ -126,8 +126,8 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
         if spec.name == "reference":
             spec.params.update(REFERENCE_PARAMS[reference])
         if spec.name == "model_server" and forward_inversion:
-            spec.params["model_file"] = spec.params.pop("inverse_model_file")
-            spec.params["feedforward"] = "forward-inversion"
+            # graph_specs serves such a model by inverting it; a mismatch is a bug here.
+            assert spec.params.get("feedforward") == "forward-inversion", spec.params
         # Lock-step means every sample waits for its command, and every command for its inputs:
         # on a loaded machine a process can stall for more than the defaults (0.2 s, 0.05 s),
         # and a plant stepping on without the command is no longer the in-process loop.
