@@ -99,6 +99,26 @@ def test_creep_found_with_undeclared_parameters(seed, creep):
     assert d.rmse_after_mm < 0.9 * d.rmse_before_mm
     accepted = next(c for c in d.candidates if c.accepted and c.effect == "creep")
     assert accepted.evidence["hold_drift"]["significant"]
+    # tau and gain from the drift during the holds: near the plant's (before the hold fit:
+    # seed 1 gave tau 28 s, -2.7 mm/V on 90 s, and the demo's record tau 3.6 s, -0.24 mm/V)
+    assert accepted.evidence["creep_fit"]["method"] == "holds"
+    fitted = accepted.evidence["params"]
+    assert creep["tau_s"] / 1.5 <= fitted["tau_s"] <= 1.5 * creep["tau_s"]
+    assert fitted["gain_mm_per_v"] == pytest.approx(creep["gain_mm_per_v"], rel=0.35)
+
+
+def test_no_creep_on_clean_step_record():
+    # the demo's kind of identification record (300 s of random 2.5 V steps at 100 Hz, holds
+    # 0.5-5 s) on the clean plant; seed 3 was not used to design the hold fit
+    from ipmc_driver.signals import random_steps
+
+    _, u = random_steps(300.0, 100.0, 2.5, seed=6)
+    run = IpmcPlant(seed=3, dt_s=0.01).run(u)
+    d = diagnose(run.t_s, u, run.y_mm, candidates=("creep",))
+    assert d.effects_found == []
+    creep = d.candidates[0]
+    assert creep.evidence["creep_fit"]["holds"] >= 10
+    assert not creep.evidence["hold_drift"]["significant"]
 
 
 def test_creep_without_holds_is_not_accepted():

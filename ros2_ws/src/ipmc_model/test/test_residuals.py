@@ -263,3 +263,37 @@ def test_hold_drift_without_holds_says_so():
     assert "cannot be told" in res["text"]
     with pytest.raises(ValueError, match="same shape"):
         hold_drift_test(u[:10], u, u, 0.02)
+
+
+@pytest.mark.parametrize("seed", [3, 4])  # seeds not used by the other hold tests
+def test_hold_drift_fast_nuisance_takes_off_the_transient(seed):
+    u, dt, hysteresis, creep = _hold_record(seed=seed)
+    fitted = creep * 1.5
+    # unskipped, the 0.5 s transient after each step passes as drift ...
+    assert hold_drift_test(hysteresis, fitted, u, dt, skip_s=0.0)["significant"]
+    # ... but not with a per-hold exponential taken off (amplitude free per hold; its time
+    # constant 0.4 s, not the transient's 0.5 s, as a fit from a grid would have it)
+    t0 = hold_drift_test(hysteresis, fitted, u, dt, skip_s=0.0, fast_tau_s=0.4)
+    assert not t0["significant"] and abs(t0["beta"]) < 0.2
+    assert t0["fast_tau_s"] == 0.4 and "fast settling" in t0["text"]
+    # and a real creep is still seen
+    t1 = hold_drift_test(hysteresis + creep, creep, u, dt, skip_s=0.0, fast_tau_s=0.4)
+    assert t1["significant"] and t1["beta"] == pytest.approx(1.0, abs=0.35)
+
+
+def test_hold_drift_nuisance_signal_is_partialled_out():
+    from scipy.signal import lfilter
+
+    u, dt, hysteresis, creep = _hold_record(seed=5)
+    a = np.exp(-dt / 1.5)
+    slow = lfilter([0.0, 1 - a], [1.0, -a], u)  # a settling slower than one exponential
+    r = hysteresis - 0.5 * slow
+    # a creep-shaped prediction takes the shared slow settling for drift ...
+    assert hold_drift_test(r, creep, u, dt, skip_s=2.0, fast_tau_s=0.5)["significant"]
+    # ... which goes when that signal is a nuisance (one coefficient over all holds)
+    good = hold_drift_test(r, creep, u, dt, skip_s=2.0, fast_tau_s=0.5, nuisance=slow)
+    assert abs(good["beta"]) < 0.2 and not good["significant"]
+    assert hold_drift_test(r + creep, creep, u, dt, skip_s=2.0, fast_tau_s=0.5,
+                           nuisance=slow)["significant"]
+    with pytest.raises(ValueError, match="nuisance"):
+        hold_drift_test(r, creep, u, dt, nuisance=slow[:10])
