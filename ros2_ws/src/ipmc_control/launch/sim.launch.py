@@ -1,12 +1,13 @@
 """The ipmc-ros graph on the simulated IPMC (a full ROS 2 install; pip-only: `ipmc bringup --sim`).
 
     ros2 launch ipmc_control sim.launch.py model:=/abs/inverse.json mode:=hybrid reference:=sine
+        (or forward_model:=/abs/fwd.json: a forward model with voltage channels, inverted)
         [lockstep:=true] [record:=run1] [plant_effects:="['creep']"]
 """
 
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
-from launch.conditions import IfCondition, LaunchConfigurationNotEquals
+from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration, PythonExpression
 from launch_ros.actions import Node
 
@@ -17,6 +18,9 @@ def generate_launch_description():
     sim_time = PythonExpression(["'", lockstep, "' == 'true'"])
     return LaunchDescription([
         DeclareLaunchArgument("model", default_value="", description="inverse model file"),
+        DeclareLaunchArgument("forward_model", default_value="",
+                              description="forward model file; with voltage channels and no "
+                                          "inverse model it is inverted for the feedforward"),
         DeclareLaunchArgument("mode", default_value="hybrid", description="pid|inverse|hybrid"),
         DeclareLaunchArgument("reference", default_value="sine",
                               description="constant|sine|random|steps|file"),
@@ -27,8 +31,11 @@ def generate_launch_description():
             "clock_mode": PythonExpression(["'lockstep' if '", lockstep,
                                             "' == 'true' else 'realtime'"])}]),
         Node(package="ipmc_model", executable="model_server", name="model_server",
-             condition=LaunchConfigurationNotEquals("model", ""),
-             parameters=[{"inverse_model_file": model, "use_sim_time": sim_time}]),
+             condition=IfCondition(PythonExpression([
+                 "'", LaunchConfiguration("model"), "' != '' or '",
+                 LaunchConfiguration("forward_model"), "' != ''"])),
+             parameters=[{"inverse_model_file": model, "use_sim_time": sim_time,
+                          "model_file": LaunchConfiguration("forward_model")}]),
         Node(package="ipmc_control", executable="controller", name="controller",
              parameters=[{"mode": LaunchConfiguration("mode"), "use_sim_time": sim_time,
                           "trigger": PythonExpression(["'measurement' if '", lockstep,
