@@ -26,8 +26,10 @@ rate_dependence input   an extra input channel, the voltage rate du/dt (V/s) low
 ============== ======== ==================================================================
 
 Fitting (:func:`fit_effect`): creep and drift are additive/multiplicative terms on the output
-of the current model, which is kept as it is; their parameters come from least squares on its
-free-run residual on the fit data (creep: tau on a log grid from seconds to minutes). The
+of the current model; their parameters come from least squares on its free-run residual on the
+fit data (creep: from the residual's drift during input holds, :func:`fit_creep_on_holds`, tau
+on a log grid from seconds to minutes, gain in closed form; without holds from the whole
+residual), and the baseline is then refitted on the data with the effect removed. The
 other effects change what the NARX sees, so the baseline NARX is refitted on the data seen
 through the effect (input transformed; saturation: output through artanh) for each value of a
 one-dimensional parameter grid, scored by free-run RMSE on an internal validation slice (the
