@@ -180,6 +180,43 @@ class Diagnosis:
     threshold: float
     seconds: float
     outputs: dict = field(default_factory=dict, repr=False)
+    notes: list = field(default_factory=list)
+
+
+#: Input-shift warning (:func:`input_shift`): the held-out part's 95 % input bandwidth differs
+#: from the fit part's by more than this factor, or its share of samples in input holds by more
+#: than :data:`SHIFT_HOLD_SHARE`.
+SHIFT_BANDWIDTH_FACTOR = 3.0
+SHIFT_HOLD_SHARE = 0.3
+
+
+def input_shift(u_fit, u_held, rate_hz: float) -> dict:
+    """Is the held-out input of the fit part's kind? 95 % power bandwidth (Hz) and share of
+    samples in input holds of >= 3 s (:func:`~ipmc_model.residuals.find_holds`) of each part,
+    and ``shifted`` when they differ by more than :data:`SHIFT_BANDWIDTH_FACTOR` /
+    :data:`SHIFT_HOLD_SHARE`: then the held-out numbers measure extrapolation to another
+    kind of input (e.g. ``ipmc simulate --input mixed``, whose last quarter is held levels the
+    sines before never showed), and an effect can "win" by changing the extrapolation."""
+    from .residuals import find_holds
+
+    def stats(u):
+        f, p = spectrum(u, rate_hz, nperseg=min(u.size, 4096))
+        c = np.cumsum(p)
+        f95 = float(f[np.searchsorted(c, 0.95 * c[-1])]) if c[-1] > 0 else 0.0
+        held = sum(e - s for s, e in find_holds(u, 1.0 / rate_hz, 3.0))
+        return max(f95, float(f[1]) if f.size > 1 else 1e-3), held / u.size
+
+    (bf, hf), (bh, hh) = stats(np.asarray(u_fit, float)), stats(np.asarray(u_held, float))
+    ratio = max(bf, bh) / max(min(bf, bh), 1e-12)
+    shifted = bool(ratio > SHIFT_BANDWIDTH_FACTOR or abs(hf - hh) > SHIFT_HOLD_SHARE)
+    text = (f"input of the fit part: 95 % bandwidth {bf:.3g} Hz, {100 * hf:.0f} % in holds; "
+            f"held-out part: {bh:.3g} Hz, {100 * hh:.0f} % in holds")
+    if shifted:
+        text = ("WARNING: the held-out input is not of the fit part's kind (" + text + "): the "
+                "held-out numbers measure extrapolation, and an effect can be accepted for "
+                "changing it; record an input whose kind does not change over time")
+    return {"bandwidth_fit_hz": bf, "bandwidth_held_hz": bh, "hold_share_fit": hf,
+            "hold_share_held": hh, "shifted": shifted, "text": text}
 
 
 def _held_out(model: AugmentedModel, u, y, cut):
@@ -363,6 +400,9 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
     screen = NarxModel(LSSVMRegressor(C=narx.regressor.C, sigma=narx.regressor.sigma),
                        input_lags=narx.input_lags, output_lags=narx.output_lags,
                        lag_step=narx.lag_step, max_rows=screen_rows)
+    shift = input_shift(uf, u[cut:], rate)
+    if shift["shifted"]:
+        say(shift["text"])
     ana_before = analyse(before, u, y, cut)
     rmse_before = ana_before["rmse_free_mm"]
     say(f"baseline: held-out free-run RMSE {rmse_before:.4f} mm, one-step "
@@ -511,7 +551,8 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
     for c in evaluated:
         c.model = None if not c.accepted else c.model
     return Diagnosis(before, current, rmse_before, rmse_cur, evaluated, found, ana_before,
-                     ana_cur, t, u, y, cut, tuning, threshold, time.perf_counter() - t0_wall)
+                     ana_cur, t, u, y, cut, tuning, threshold, time.perf_counter() - t0_wall,
+                     notes=[shift["text"]])
 
 
 # -- report ------------------------------------------------------------------------------------
@@ -583,6 +624,7 @@ def _markdown(d: Diagnosis, s: dict, figs: list[str], label: str) -> str:
                      f"{a['one_step_tests']['ljung_box_p']:.3g} | "
                      f"{ft.get('acf_outside', float('nan')):.2f} |")
     lines += ["", f"Effects found: **{', '.join(s['effects_found']) or 'none'}**.", ""]
+    lines += [f"Note: {n}." for n in d.notes] + ([""] if d.notes else [])
     if d.model_after.effects:
         lines += ["## Fitted effects (physical units)", "", "| effect | parameter | value | "
                   "unit |", "|---|---|---|---|"]

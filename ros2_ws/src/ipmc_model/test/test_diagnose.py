@@ -17,7 +17,7 @@ import pytest
 from ipmc_driver.dataio import Record, save_csv
 from ipmc_driver.plant import IpmcPlant
 from ipmc_driver.signals import random_sine, random_steps
-from ipmc_model.diagnose import choose_lag_step, diagnose
+from ipmc_model.diagnose import choose_lag_step, diagnose, input_shift
 from ipmc_model.diagnose_cli import main
 
 RATE = 50.0
@@ -201,3 +201,17 @@ def test_lag_step_follows_input_bandwidth():
     assert 1 <= choose_lag_step(u, RATE) <= 5
     fast = np.sin(2 * np.pi * 100 * np.arange(7500) / 750.0)
     assert choose_lag_step(fast, 750.0) == 1
+
+
+def test_input_shift_flags_a_held_out_part_of_another_kind():
+    # the CLI's 'mixed' input puts its held levels in the last quarter: a chronological split
+    # then tests sines -> steps extrapolation (a clean plant got a dead zone that way)
+    _, sine = random_sine(84.0, RATE, 2.5, (0.05, 1.0), 8, seed=9)
+    _, steps = random_steps(36.0, RATE, 2.5, seed=9)
+    shifted = input_shift(sine, steps, RATE)
+    assert shifted["shifted"] and "WARNING" in shifted["text"]
+    assert shifted["hold_share_fit"] == 0.0 and shifted["hold_share_held"] > 0.4
+    u = _input(120.0, seed=9, holds=True)  # one kind throughout
+    cut = int(0.7 * u.size)
+    same = input_shift(u[:cut], u[cut:], RATE)
+    assert not same["shifted"] and "WARNING" not in same["text"]
