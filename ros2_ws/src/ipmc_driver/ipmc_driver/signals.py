@@ -69,28 +69,39 @@ def random_steps(seconds: float, rate_hz: float = 100.0, amplitude: float = 3.0,
 
 
 def mixed(seconds: float, rate_hz: float = 100.0, amplitude: float = 3.0,
-          band_hz: tuple[float, float] = (0.02, 0.8), seed: int | None = 0
+          band_hz: tuple[float, float] = (0.02, 0.8), seed: int | None = 0, cycles: int = 4
           ) -> tuple[np.ndarray, np.ndarray]:
     """Identification input that covers the operating range in amplitude AND frequency.
 
-    Three parts, one after the other: a random sine over ``band_hz`` (half the time), a random
-    sine over the band's slow quarter ``(low, high / 4)`` (a quarter), then random levels held
-    0.5-5 s (a quarter), all with peak ``amplitude`` (V). Why: a nonlinear model fitted on a
-    fast random sine alone rarely sees large voltages held long (its peaks are brief), so it
-    extrapolates on a slow full-range sine; the slow part and the held levels put data there
-    (the amplitude-modulated PRBS habit of nonlinear identification).
+    ``cycles`` equal cycles, each of three parts one after the other: a random sine over
+    ``band_hz`` (half the cycle), a random sine over the band's slow quarter ``(low, high / 4)``
+    (a quarter), then random levels held 0.5-5 s (a quarter), all with peak ``amplitude`` (V).
+    Why: a nonlinear model fitted on a fast random sine alone rarely sees large voltages held
+    long (its peaks are brief), so it extrapolates on a slow full-range sine; the slow part and
+    the held levels put data there (the amplitude-modulated PRBS habit of nonlinear
+    identification). Why cycles: a chronological split (the last 30 % held out, as ``ipmc
+    diagnose`` and the tuning do) then holds every kind of input on both sides.
     """
     lo, hi = band_hz
     if not 0 <= lo < hi / 4:
         raise ValueError(f"band_hz must satisfy 0 <= low < high / 4, got {band_hz}")
+    if int(cycles) != cycles or cycles < 1:
+        raise ValueError(f"cycles must be an integer >= 1, got {cycles!r}")
     n = time_axis(seconds, rate_hz).size
-    if n < 4:
-        raise ValueError(f"seconds * rate_hz must give at least 4 samples, got {n}")
-    seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=3)
-    n_fast, n_slow = n // 2, n // 4
-    n_steps = n - n_fast - n_slow
-    fast = random_sine(n_fast / rate_hz, rate_hz, amplitude, (lo, hi), seed=int(seeds[0]))[1]
-    slow = random_sine(n_slow / rate_hz, rate_hz, amplitude, (lo, hi / 4), seed=int(seeds[1]))[1]
-    held = random_steps(n_steps / rate_hz, rate_hz, amplitude, seed=int(seeds[2]))[1]
-    x = np.concatenate([fast[:n_fast], slow[:n_slow], held[:n_steps]])
-    return np.arange(n) / float(rate_hz), x
+    if n < 4 * cycles:
+        raise ValueError(f"seconds * rate_hz must give at least 4 samples per cycle, got {n}")
+    seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=(int(cycles), 3))
+    edges = np.linspace(0, n, int(cycles) + 1).round().astype(int)
+    parts = []
+    for (a, b), (s_fast, s_slow, s_held) in zip(zip(edges[:-1], edges[1:], strict=True), seeds,
+                                                 strict=True):
+        m = b - a
+        n_fast, n_slow = m // 2, m // 4
+        n_held = m - n_fast - n_slow
+        parts += [random_sine(n_fast / rate_hz, rate_hz, amplitude, (lo, hi),
+                              seed=int(s_fast))[1][:n_fast],
+                  random_sine(n_slow / rate_hz, rate_hz, amplitude, (lo, hi / 4),
+                              seed=int(s_slow))[1][:n_slow],
+                  random_steps(n_held / rate_hz, rate_hz, amplitude,
+                               seed=int(s_held))[1][:n_held]]
+    return np.arange(n) / float(rate_hz), np.concatenate(parts)

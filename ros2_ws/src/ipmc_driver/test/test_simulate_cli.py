@@ -41,26 +41,32 @@ def test_simulate_refuses_an_unknown_effect(tmp_path, capsys):
     assert "invalid choice: 'humidity'" in capsys.readouterr().err
 
 
-def test_mixed_input_has_a_fast_part_a_slow_part_and_held_levels():
+def test_mixed_input_has_fast_slow_and_held_parts_in_every_cycle():
     from ipmc_driver.signals import mixed
 
-    t, u = mixed(400.0, 100.0, 2.5, band_hz=(0.02, 0.8), seed=3)
+    t, u = mixed(400.0, 100.0, 2.5, band_hz=(0.02, 0.8), seed=3, cycles=2)
     assert u.size == t.size == 40000 and np.abs(u).max() == pytest.approx(2.5)
-    fast, slow, held = u[:20000], u[20000:30000], u[30000:]
 
-    def top_hz(x):  # frequency below which 99 % of the power lies
+    def top_hz(x):  # frequency below which 95 % of the power lies (windows are short)
         p = np.abs(np.fft.rfft(x - x.mean())) ** 2
         f = np.fft.rfftfreq(x.size, 0.01)
-        return f[np.searchsorted(np.cumsum(p) / p.sum(), 0.99)]
+        return f[np.searchsorted(np.cumsum(p) / p.sum(), 0.95)]
 
-    assert 0.3 < top_hz(fast) <= 0.8 and top_hz(slow) <= 0.2
-    # The held part: levels held 0.5-5 s, so few changes and long runs of one value.
-    changes = np.flatnonzero(np.diff(held))
-    assert 100 / 5 <= changes.size + 1 <= 100 / 0.5
-    assert np.abs(held).max() > 2.0  # reaches high levels and holds them
-    same = mixed(400.0, 100.0, 2.5, band_hz=(0.02, 0.8), seed=3)[1]
-    np.testing.assert_array_equal(u, same)
-    assert not np.array_equal(u, mixed(400.0, 100.0, 2.5, band_hz=(0.02, 0.8), seed=4)[1])
+    for c in range(2):  # each 200 s cycle: fast 100 s, slow 50 s, held 50 s
+        cycle = u[c * 20000:(c + 1) * 20000]
+        fast, slow, held = cycle[:10000], cycle[10000:15000], cycle[15000:]
+        assert 0.3 < top_hz(fast) <= 0.8 and top_hz(slow) <= 0.2
+        # Levels held 0.5-5 s: few changes, long runs of one value, high levels reached.
+        changes = np.flatnonzero(np.diff(held)).size + 1
+        assert 50 / 5 <= changes <= 50 / 0.5
+        assert np.abs(held).max() > 1.5
+    # The last 30 % (what a chronological split holds out) has held levels too.
+    tail = u[28000:]
+    assert np.mean(np.diff(tail) == 0) > 0.3
+    np.testing.assert_array_equal(u, mixed(400.0, 100.0, 2.5, band_hz=(0.02, 0.8), seed=3,
+                                           cycles=2)[1])
+    assert not np.array_equal(u, mixed(400.0, 100.0, 2.5, band_hz=(0.02, 0.8), seed=4,
+                                       cycles=2)[1])
 
 
 def test_mixed_input_refuses_a_band_without_a_slow_quarter():
@@ -68,3 +74,5 @@ def test_mixed_input_refuses_a_band_without_a_slow_quarter():
 
     with pytest.raises(ValueError, match="band_hz"):
         mixed(60.0, band_hz=(0.3, 0.8))
+    with pytest.raises(ValueError, match="cycles"):
+        mixed(60.0, cycles=0)
