@@ -75,13 +75,6 @@ def load_feedforward(path: str | None, mode: str):
 load_inverse = load_feedforward
 
 
-def is_forward_inversion(feedforward) -> bool:
-    """Whether a feedforward of :func:`load_feedforward` inverts a forward model."""
-    from ipmc_model.forward_inversion import ForwardInversionFeedforward
-
-    return isinstance(feedforward, ForwardInversionFeedforward)
-
-
 def run_in_process(model, reference: str, mode: str, effects: list[str], duration_s: float,
                    seed: int = 0):
     from ipmc_driver.plant import IpmcPlant
@@ -92,13 +85,12 @@ def run_in_process(model, reference: str, mode: str, effects: list[str], duratio
 
 
 def run_graph(model_path: str | None, reference: str, mode: str, effects: list[str],
-              duration_s: float, *, log=sys.stderr, timeout_s: float | None = None,
-              forward_inversion: bool = False) -> dict:
+              duration_s: float, *, log=sys.stderr, timeout_s: float | None = None) -> dict:
     """Run the experiment through sim_plant (lock-step), model_server, controller, reference
     and recorder as processes; return the summary computed from the recorded bag.
 
-    ``forward_inversion``: ``model_path`` is a forward model with voltage channels, served by
-    model_server as ``model_file`` with ``feedforward:=forward-inversion``."""
+    A forward model with voltage channels as ``model_path`` is served by model_server as
+    ``model_file`` with ``feedforward:=forward-inversion`` (``bringup.graph_specs``)."""
     import rclpy
     import rclpy.executors
     from geometry_msgs.msg import PointStamped
@@ -125,9 +117,6 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     for spec in specs:
         if spec.name == "reference":
             spec.params.update(REFERENCE_PARAMS[reference])
-        if spec.name == "model_server" and forward_inversion:
-            # graph_specs serves such a model by inverting it; a mismatch is a bug here.
-            assert spec.params.get("feedforward") == "forward-inversion", spec.params
         # Lock-step means every sample waits for its command, and every command for its inputs:
         # on a loaded machine a process can stall for more than the defaults (0.2 s, 0.05 s),
         # and a plant stepping on without the command is no longer the in-process loop.
@@ -252,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
         model = load_feedforward(args.model, args.mode)
         if args.graph:
             summary = run_graph(args.model, args.reference, args.mode, args.plant_effect,
-                                duration, forward_inversion=is_forward_inversion(model))
+                                duration)
         else:
             result = run_in_process(model, args.reference, args.mode, args.plant_effect,
                                     duration)
