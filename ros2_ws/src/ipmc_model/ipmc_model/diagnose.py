@@ -59,6 +59,7 @@ from .effects import (
     AugmentedModel,
     Effect,
     fit_effect,
+    mask_model_settling,
     save_augmented,
 )
 from .lssvm import LSSVMRegressor
@@ -277,6 +278,8 @@ def _creep_hold_test(current: AugmentedModel, eff, u, y, cut, free_cur) -> dict:
     fit = getattr(eff, "hold_fit_", None) or {}
     if "oof_state" not in fit:
         return hold_drift_test(r, x, u, current.dt_s)
+    # as in the fit: only where the current model has stopped moving in a hold
+    r[cut:] = mask_model_settling(r_held, free_cur, u[cut:], current.dt_s)
     own = np.isfinite(fit["oof_state"])
     x[:cut][own] = fit["oof_state"][own]
     # the segments as the fit saw them: from CREEP_HOLD_SKIP_S, the plant's fast settling

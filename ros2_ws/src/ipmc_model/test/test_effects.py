@@ -16,6 +16,7 @@ from ipmc_model.effects import (
     fit_creep_on_holds,
     fit_effect,
     load_augmented,
+    mask_model_settling,
     save_augmented,
 )
 from ipmc_model.errors import ModelFileError
@@ -230,6 +231,23 @@ def test_creep_fit_on_plant_holds_is_near_the_truth(seed, tau_s, gain):
     assert tau_s / 1.5 <= eff.params["tau_s"] <= 1.5 * tau_s
     assert_allclose(eff.params["gain_mm_per_v"], gain, rtol=0.35)
     assert m.effect_names == ["creep"]
+
+
+def test_mask_model_settling_blanks_where_the_model_still_moves():
+    dt = 0.01
+    u = np.r_[np.zeros(100), np.full(500, 2.0), np.full(500, -1.0)]
+    r = 0.1 * np.sin(np.arange(u.size) * 0.05)
+    # a model that keeps moving for 2.5 s after each jump (a rate channel), then is constant
+    pred = np.zeros(u.size)
+    pred[100:350] = np.linspace(1.0, 0.0, 250)
+    pred[600:850] = np.linspace(-1.0, 0.0, 250)
+    out = mask_model_settling(r, pred, u, dt)
+    assert np.all(np.isnan(out[100:349])) and np.all(np.isnan(out[600:849]))
+    assert_allclose(out[350:600], r[350:600])
+    assert_allclose(out[850:], r[850:])
+    assert_allclose(out[:100], r[:100])  # 1 s at rest is no usable hold
+    # a model constant in every hold leaves the residual as it is
+    assert_allclose(mask_model_settling(r, np.zeros(u.size), u, dt), r)
 
 
 def test_every_candidate_fits(record, base):
