@@ -60,6 +60,9 @@ def run(argv: list[str], env: dict, log) -> None:
         raise RuntimeError(f"{' '.join(argv)} failed ({out.returncode}):\n{out.stderr[-3000:]}")
     for line in out.stdout.splitlines():
         print("  " + line, file=log, flush=True)
+    for line in out.stderr.splitlines():  # e.g. "warning: the controller ran without ..."
+        if line.startswith("warning"):
+            print("  " + line, file=log, flush=True)
 
 
 def track(ref: str, mode: str, effects: list[str], model: Path, out_dir: Path, graph: bool,
