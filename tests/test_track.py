@@ -108,21 +108,29 @@ def test_track_with_a_forward_model_inverts_it_and_beats_pid(forward_file, tmp_p
     assert runs["hybrid"]["u_max_v"] <= 3.0
 
 
-def test_track_graph_agrees_with_in_process_within_10_percent(inverse_file, ros_env, tmp_path):
-    common = ["--model", str(inverse_file), "--reference", "sine", "--mode", "hybrid",
+def graph_and_in_process(model_file, ros_env, tmp_path, timeout_s):
+    """The sine hybrid of ``model_file`` in process and with --graph: (in-process JSON, graph
+    JSON, the graph run's CompletedProcess)."""
+    common = ["--model", str(model_file), "--reference", "sine", "--mode", "hybrid",
               "--seconds", str(GRAPH_S)]
     inproc, graph = tmp_path / "inproc.json", tmp_path / "graph.json"
     assert track_main([*common, "--json", str(inproc)]) == 0
     out = subprocess.run([str(VENV_BIN / "ipmc"), "track", *common, "--graph",
                           "--json", str(graph)], env=ros_env, capture_output=True, text=True,
-                         timeout=120)
+                         timeout=timeout_s)
     assert out.returncode == 0, out.stderr[-3000:]
     a, b = json.loads(inproc.read_text()), json.loads(graph.read_text())
+    print(f"in process {a['rmse_mm']:.4f} mm, graph {b['rmse_mm']:.4f} mm")
     assert set(b) == KEYS
     # Lock-step: nothing lost at the start (+-1: the window's end falls between samples).
     assert abs(b["samples"] - a["samples"]) <= 1
     assert b["u_max_v"] <= 3.0
     assert b["rmse_mm"] == pytest.approx(a["rmse_mm"], rel=0.10), (a, b)
+    return a, b, out
+
+
+def test_track_graph_agrees_with_in_process_within_10_percent(inverse_file, ros_env, tmp_path):
+    _, _, out = graph_and_in_process(inverse_file, ros_env, tmp_path, timeout_s=120)
     assert "slow exits" not in out.stderr, out.stderr[-2000:]
 
 
@@ -130,19 +138,7 @@ def test_track_graph_with_forward_inversion_agrees_with_in_process(forward_file,
                                                                    tmp_path):
     """model_server serves /ipmc/feedforward by inverting the forward model; the lock-step
     controller's hybrid loop is the in-process one."""
-    common = ["--model", str(forward_file), "--reference", "sine", "--mode", "hybrid",
-              "--seconds", str(GRAPH_S)]
-    inproc, graph = tmp_path / "inproc.json", tmp_path / "graph.json"
-    assert track_main([*common, "--json", str(inproc)]) == 0
-    out = subprocess.run([str(VENV_BIN / "ipmc"), "track", *common, "--graph",
-                          "--json", str(graph)], env=ros_env, capture_output=True, text=True,
-                         timeout=150)
-    assert out.returncode == 0, out.stderr[-3000:]
-    a, b = json.loads(inproc.read_text()), json.loads(graph.read_text())
-    print(f"in process {a['rmse_mm']:.4f} mm, graph {b['rmse_mm']:.4f} mm")
-    assert set(b) == KEYS
-    assert abs(b["samples"] - a["samples"]) <= 1
-    assert b["rmse_mm"] == pytest.approx(a["rmse_mm"], rel=0.10), (a, b)
+    _, _, out = graph_and_in_process(forward_file, ros_env, tmp_path, timeout_s=150)
     assert "without the feedforward" not in out.stderr, out.stderr[-2000:]
     # model_server said which feedforward it served.
     bag = Path(out.stderr.split("bag ")[-1].split()[0])
