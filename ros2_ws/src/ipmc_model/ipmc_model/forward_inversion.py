@@ -96,9 +96,14 @@ class ForwardInversionFeedforward:
             for name, value in given.items():
                 if value is None:
                     continue
-                if name == "input_memory_taus_s":
-                    value = tuple(float(t) for t in value)
-                if value != own[name]:
+                if name == "include_voltage":
+                    same = bool(value) == own[name]
+                else:  # times: dt_s comes from the data's time stamps (0.00999999999999 s)
+                    theirs = np.atleast_1d(np.asarray(value, dtype=float))
+                    mine = np.atleast_1d(np.asarray(own[name], dtype=float))
+                    same = theirs.shape == mine.shape and np.allclose(theirs, mine, rtol=1e-6,
+                                                                      atol=0.0)
+                if not same:
                     raise ValueError(f"{name}={value!r} disagrees with the forward model's own "
                                      f"voltage channels ({name}={own[name]!r}); leave it out")
             given = own

@@ -145,6 +145,10 @@ def test_a_model_with_its_own_voltage_channels_needs_no_repeated_taus(linear_ff)
     np.testing.assert_allclose(run(ff, target), run(linear_ff, target), rtol=0, atol=1e-9)
     # Repeating the model's own values is accepted; contradicting them is not.
     ForwardInversionFeedforward(own, input_memory_taus_s=list(TAUS_S), dt_s=DT_S)
+    # dt from a record's time stamps is not exactly 0.01 s: still the same channels.
+    own.dt_s = DT_S * (1 - 1e-12)
+    ForwardInversionFeedforward(own, dt_s=DT_S)
+    own.dt_s = DT_S
     with pytest.raises(ValueError, match="dt_s=0.02 disagrees"):
         ForwardInversionFeedforward(own, dt_s=0.02)
     with pytest.raises(ValueError, match="include_voltage=True disagrees"):
