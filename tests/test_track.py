@@ -119,6 +119,10 @@ def graph_and_in_process(model_file, ros_env, tmp_path, timeout_s):
                           "--json", str(graph)], env=ros_env, capture_output=True, text=True,
                          timeout=timeout_s)
     assert out.returncode == 0, out.stderr[-3000:]
+    # Lock-step: every sample got its command, every step its inputs (no 5 s stall at the start:
+    # the reference node ticks on the plant's first /clock).
+    assert "without its command" not in out.stderr, out.stderr[-2000:]
+    assert "without the feedforward" not in out.stderr, out.stderr[-2000:]
     a, b = json.loads(inproc.read_text()), json.loads(graph.read_text())
     print(f"in process {a['rmse_mm']:.4f} mm, graph {b['rmse_mm']:.4f} mm")
     assert set(b) == KEYS
@@ -139,7 +143,6 @@ def test_track_graph_with_forward_inversion_agrees_with_in_process(forward_file,
     """model_server serves /ipmc/feedforward by inverting the forward model; the lock-step
     controller's hybrid loop is the in-process one."""
     _, _, out = graph_and_in_process(forward_file, ros_env, tmp_path, timeout_s=150)
-    assert "without the feedforward" not in out.stderr, out.stderr[-2000:]
     # model_server said which feedforward it served.
     bag = Path(out.stderr.split("bag ")[-1].split()[0])
     log = (bag.parent / "logs" / "model_server.log").read_text()

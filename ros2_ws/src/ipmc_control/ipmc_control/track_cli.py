@@ -193,6 +193,12 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
         print(f"warning: the controller ran without the feedforward {fallbacks} time(s) (a node "
               f"stalled for more than {LOCKSTEP_WAIT_S:g} s of wall time): this run is not the "
               "in-process loop sample for sample; see " + str(work / "logs"), file=log)
+    unanswered = _count_in_log(work / "logs" / "sim_plant.log", "lock-step: no command")
+    if unanswered:
+        print(f"warning: the plant stepped on without its command (a node stalled for more than "
+              f"{LOCKSTEP_WAIT_S:g} s of wall time; {unanswered} warning(s) in the plant's log): "
+              "this run is not the in-process loop sample for sample; see "
+              + str(work / "logs"), file=log)
     series = read_stamped_series(bag, {"/ipmc/reference": DISPLACEMENT_TYPE,
                                        "/ipmc/displacement": DISPLACEMENT_TYPE,
                                        "/ipmc/voltage": VOLTAGE_TYPE})

@@ -367,8 +367,13 @@ class Controller(Node):
         if fallback != self._fallback:
             self._fallback = fallback
             if fallback:
+                last = ("none received yet" if self._ff_v is None
+                        else f"last received {now - self._ff_rx_s:.3f} s before")
+                at = f" at sample {t_s:.3f} s" if target_ns is not None else ""
                 self.get_logger().warn(
-                    f"feedforward stale (> {self.ff_timeout_s} s): PID alone until it returns")
+                    f"feedforward stale (> {self.ff_timeout_s} s){at}: {last}, "
+                    f"{self.count_publishers('/ipmc/feedforward')} publisher(s), "
+                    f"{self.unpaired_steps} unpaired step(s); PID alone until it returns")
             else:
                 self.get_logger().info(f"feedforward back: mode {mode}")
             self.publish_diagnostics()

@@ -29,6 +29,7 @@ from geometry_msgs.msg import PointStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
+from rosgraph_msgs.msg import Clock as ClockMsg
 
 from ipmc_control.pid import ControlParameterError
 from ipmc_control.references import KINDS, Reference, make_reference
@@ -37,6 +38,9 @@ from ipmc_driver.node_runtime import run_node
 # Reliable and deep (docs/interfaces.md): in lock-step bursts no reference sample may be lost.
 REFERENCE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
                            reliability=QoSReliabilityPolicy.RELIABLE)
+# Reliable (rclpy's TimeSource listens best effort): the first /clock must not be missed.
+CLOCK_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
+                       reliability=QoSReliabilityPolicy.RELIABLE)
 # Parameter name -> (default, description); which ones each kind takes.
 # Longest catch-up burst, samples: below the subscribers' queue depth (100).
 MAX_BURST = 90
@@ -111,6 +115,11 @@ class ReferenceNode(Node):
 
         self.pub = self.create_publisher(PointStamped, "/ipmc/reference", REFERENCE_QOS)
         self.create_timer(1.0 / self.rate_hz, self._on_tick)
+        if self.get_parameter("use_sim_time").value:
+            # A timer on /clock first fires one period after the first /clock message. A
+            # lock-step plant publishes its sample 0 and waits for the command, which waits for
+            # this reference: tick on /clock itself, so the reference starts at the plant's t = 0.
+            self.create_subscription(ClockMsg, "/clock", self._on_clock, CLOCK_QOS)
         self.get_logger().info(
             f"reference: {self.get_parameter('kind').value} at {self.rate_hz:g} Hz")
 
@@ -136,8 +145,13 @@ class ReferenceNode(Node):
             self.generator, self._pending = self._pending, None
             self.get_logger().info(f"reference: now {self.get_parameter('kind').value}")
 
+    def _on_clock(self, msg: ClockMsg) -> None:
+        self._publish_until(msg.clock.sec * 1_000_000_000 + msg.clock.nanosec)
+
     def _on_tick(self) -> None:
-        now_ns = self.get_clock().now().nanoseconds
+        self._publish_until(self.get_clock().now().nanoseconds)
+
+    def _publish_until(self, now_ns: int) -> None:
         if self._t0_ns is None or now_ns < self._t0_ns:  # first tick, or the clock went back
             self._t0_ns, self._next_k = now_ns, 0
         # Every sample of the grid t0 + k / rate_hz up to now + preview, so that a late tick

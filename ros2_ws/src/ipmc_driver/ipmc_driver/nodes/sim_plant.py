@@ -13,7 +13,8 @@ Clocks (``clock_mode``):
   in V, stamped with the sample it answers: the ``controller`` does), the plant waits for the
   command stamped with the sample it just published and applies that one: a late command for
   an older sample, or a second one for the same sample, can then never shift every later
-  command by a sample (a bare Float64 cannot say which sample it answers).
+  command by a sample (a bare Float64 cannot say which sample it answers). A sample stepped on
+  without its command is logged as a warning ("lock-step: no command for the sample at ...").
 """
 
 from __future__ import annotations
@@ -93,6 +94,7 @@ class SimPlant(Node):
         self.command_count = 0
         self._count_at_sample = 0
         self._sample_wall = 0.0
+        self.unanswered = 0       # lock-step samples stepped on without their command
 
         self.pub_voltage = self.create_publisher(Vector3Stamped, "/ipmc/voltage", SAMPLE_QOS)
         self.pub_disp = self.create_publisher(PointStamped, "/ipmc/displacement", SAMPLE_QOS)
@@ -151,12 +153,26 @@ class SimPlant(Node):
                 self.command_v = self._answer_v
             elif waited < timeout:
                 return
+            else:
+                self._note_unanswered(timeout)
             self._publish_sample(*self.plant.step(self.command_v))
             return
         answered = self.command_count > self._count_at_sample
         nobody = self.count_publishers("/ipmc/command") == 0
         if answered or nobody or waited >= timeout:
+            if not (answered or nobody):
+                self._note_unanswered(timeout)
             self._publish_sample(*self.plant.step(self.command_v))
+
+    def _note_unanswered(self, timeout_s: float) -> None:
+        # A sample stepped on without its command: the graph is no longer the in-process loop.
+        if self._sample_ns < 0:
+            return   # time starts: no sample was waiting
+        self.unanswered += 1
+        self.get_logger().warn(
+            f"lock-step: no command for the sample at {self._sample_ns * 1e-9:.3f} s within "
+            f"{timeout_s:g} s: stepped on with the last one ({self.unanswered} so far)",
+            throttle_duration_sec=1.0)
 
     def _publish_sample(self, u_applied_v: float, y_mm: float) -> None:
         # plant.t_s is already the next sample's time: this sample was taken one period earlier.
