@@ -52,7 +52,12 @@ from geometry_msgs.msg import PointStamped, Vector3Stamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
+from rclpy.qos import (
+    QoSDurabilityPolicy,
+    QoSHistoryPolicy,
+    QoSProfile,
+    QoSReliabilityPolicy,
+)
 from std_msgs.msg import Float64
 
 from ipmc_control.hybrid import HybridController, check_mode
@@ -64,6 +69,11 @@ from ipmc_driver.node_runtime import run_node
 # burst loses no sample; the loop keys references and feedforwards by stamp.
 INPUT_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
                        reliability=QoSReliabilityPolicy.RELIABLE)
+# trigger:=measurement pairs feedforwards with references by stamp and waits for them: take
+# those published before this subscription matched too (model_server keeps the last 100).
+PAIRED_FEEDFORWARD_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
+                                    reliability=QoSReliabilityPolicy.RELIABLE,
+                                    durability=QoSDurabilityPolicy.TRANSIENT_LOCAL)
 COMMAND_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
                          reliability=QoSReliabilityPolicy.RELIABLE)
 TRIGGERS = ("timer", "measurement")
@@ -177,7 +187,8 @@ class Controller(Node):
         self.create_subscription(PointStamped, "/ipmc/displacement", self._on_displacement,
                                  INPUT_QOS)
         self.create_subscription(Vector3Stamped, "/ipmc/feedforward", self._on_feedforward,
-                                 INPUT_QOS)
+                                 PAIRED_FEEDFORWARD_QOS if self.trigger == "measurement"
+                                 else INPUT_QOS)
 
         if self.trigger == "timer":
             self.create_timer(1.0 / self.rate_hz, self._on_tick)
@@ -282,9 +293,10 @@ class Controller(Node):
             return False   # before the reference starts: the step idles, nothing to wait for
         if target_ns not in self._recent_refs:
             return True
+        # Wait for the feedforward even before its publisher is seen (discovery can lag under
+        # load); without model_server the first step waits pair_wait_s and falls back.
         return (self.hybrid.mode != "pid" and not self._fallback
-                and target_ns not in self._recent_ffs
-                and (self._ff_v is not None or self.count_publishers("/ipmc/feedforward") > 0))
+                and target_ns not in self._recent_ffs)
 
     def _maybe_run_pending(self) -> None:
         if self._pending is not None and not self._missing_inputs(self._pending[2]):

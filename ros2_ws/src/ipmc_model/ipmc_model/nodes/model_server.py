@@ -64,7 +64,12 @@ SAMPLE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
                         durability=QoSDurabilityPolicy.VOLATILE)
 # A sample topic like the others (docs/interfaces.md: reliable, depth 100): at depth 10 a busy
 # lock-step run lost feedforwards, and the controller waiting for one fell back to PID.
-FEEDFORWARD_QOS = SAMPLE_QOS
+# Transient local: a controller that matches this publisher late (discovery under load) still
+# gets the first feedforwards, which a lock-step controller waits for; volatile subscribers
+# (a recorder, ros2 topic echo) match as before.
+FEEDFORWARD_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
+                             reliability=QoSReliabilityPolicy.RELIABLE,
+                             durability=QoSDurabilityPolicy.TRANSIENT_LOCAL)
 DIAGNOSTICS_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
                              reliability=QoSReliabilityPolicy.RELIABLE)
 HARDWARE_ID = "ipmc"
