@@ -169,3 +169,55 @@ def test_stepper_seeded_with_past_voltages_continues_the_run(linear_ff):
         assert b.step(r) == pytest.approx(a.step(r), abs=1e-9)
     with pytest.raises(ValueError, match="finite voltages"):
         linear_ff.stepper(u_history=[0.0, float("nan")])
+
+
+@pytest.fixture(scope="module")
+def lssvm_nfir():
+    """A forward LSSVM on the two low-passed voltages (the structure model_server inverts)."""
+    def plant(u_v):
+        ch = voltage_channels(u_v, TAUS_S, DT_S, include_voltage=False)
+        s = ch[:, 0] - 0.4 * ch[:, 1]
+        return np.where(s > 0, 3.0 * np.tanh(s), 1.2 * s * (1 - 0.2 * s))
+
+    u = smooth_voltage(2000, seed=1)
+    model = NarxModel(LSSVMRegressor(C=1e6, sigma=1.0), input_lags=0, output_lags=0,
+                      input_memory_taus_s=TAUS_S, include_voltage=False, dt_s=DT_S)
+    return model.fit(u, plant(u)), plant
+
+
+def test_auto_series_agrees_with_the_grid_and_with_the_model(lssvm_nfir):
+    model, plant = lssvm_nfir
+    target = plant(smooth_voltage(1500, seed=9, amplitude_v=1.5))
+    auto = ForwardInversionFeedforward(model).stepper()
+    grid = ForwardInversionFeedforward(model, method="grid").stepper()
+    u_auto, predicted = np.empty(target.size), np.empty(target.size)
+    for k, r in enumerate(target):
+        u_auto[k] = auto.step(r)
+        predicted[k] = auto.predicted_mm
+    u_grid = np.array([grid.step(r) for r in target])
+    assert auto.series_steps == target.size and grid.series_steps == 0
+    assert auto.series_error_bound_mm <= 1e-6
+    # The series' prediction (the model's advanced state) is the model's own free run.
+    np.testing.assert_allclose(predicted, model.simulate(u_auto), rtol=0, atol=1e-8)
+    # Both minimise the same cost, the grid to about 1e-3 V: measured 1e-5 V apart.
+    assert np.max(np.abs(u_auto - u_grid)) < 1e-3
+    assert np.sqrt(np.mean((plant(u_auto) - target) ** 2)) < 0.02
+
+
+def test_auto_takes_the_grid_where_the_series_bound_is_too_large(lssvm_nfir):
+    model, plant = lssvm_nfir
+    u = smooth_voltage(2000, seed=1)
+    raw = NarxModel(LSSVMRegressor(C=1e3, sigma=0.3), input_lags=0, output_lags=0,
+                    input_memory_taus_s=TAUS_S, include_voltage=True, dt_s=DT_S).fit(u, plant(u))
+    st = ForwardInversionFeedforward(raw).stepper()
+    target = plant(smooth_voltage(50, seed=9, amplitude_v=1.5))
+    u_auto = np.array([st.step(r) for r in target])
+    # The raw voltage channel moves the row several kernel widths over +-3 V: the grid.
+    assert st.series_steps == 0
+    grid = ForwardInversionFeedforward(raw, method="grid").stepper()
+    np.testing.assert_array_equal(u_auto, [grid.step(r) for r in target])
+
+
+def test_method_is_checked(lssvm_nfir):
+    with pytest.raises(ValueError, match="method must be one of"):
+        ForwardInversionFeedforward(lssvm_nfir[0], method="newton")

@@ -9,7 +9,7 @@ either may be empty, and what needs a missing model is simply not published.
   one feedforward step per reference sample, from the source ``feedforward`` chooses:
   ``inverse`` (the inverse model's stepper), ``forward-inversion`` (the forward model, if it
   has voltage channels (``ipmc identify --input-memory-taus``), inverted sample by sample:
-  ``ipmc_model.forward_inversion``, about 0.5 ms a step) or ``auto`` (the inverse model if
+  ``ipmc_model.forward_inversion``, about 0.1 ms a step) or ``auto`` (the inverse model if
   there is one, else the forward inversion if the forward model allows it, else none). The
   voltage history the feedforward sees is set by ``history_voltage``: ``applied`` (the latest
   ``/ipmc/voltage`` applied voltage when one arrived since the previous step, else the clamped
@@ -211,7 +211,7 @@ class ModelServer(Node):
         self.declare_parameter("feedforward", "auto", d(
             description="feedforward source: auto (the inverse model if given, else the "
                         "forward model inverted if it has voltage channels) | inverse | "
-                        "forward-inversion (about 0.5 ms per sample)", read_only=True))
+                        "forward-inversion (about 0.1 ms per sample)", read_only=True))
         # The staleness monitor (all read-only: it is built once; a reload restarts it).
         self.declare_parameter("monitor_residual", "free_run", d(
             description="residual fed to the staleness monitor: free_run (measured - free-run "
