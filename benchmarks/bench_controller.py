@@ -8,19 +8,25 @@ simulated plant (the plant's own time is not counted):
 3. ``inverse model + hybrid``: ``InverseStepper.step`` + ``HybridController.compute_command`` +
    ``record_applied`` (what the in-process loop does each sample), when ``ipmc_model.narx`` is
    available. The inverse model is fitted here on a plant excitation, or loaded with
-   ``--model FILE`` (``ipmc_model.persistence.load_model``).
+   ``--model FILE`` (``ipmc_model.persistence.load_model``);
+4. ``forward inversion + hybrid`` (``--forward-model FILE``, a forward model with voltage
+   channels, e.g. the demo's ``forward_ff.json``): ``ForwardInversionStepper.step`` +
+   ``HybridController.compute_command`` + ``record_applied``, the forward model inverted
+   online (``ipmc_model.forward_inversion``, its default method).
 
 Then (``--graph SECONDS``, default 30; 0 skips it) it runs ``sim_plant`` (real-time clock),
-``reference``, ``controller`` and, with an inverse model, ``model_server`` (hybrid mode) as
-processes over DDS (own domain, loopback) and reports the controller's own loop figures from
-/diagnostics: steps, deadline misses (a 100 Hz tick later than 1.5 periods after the previous
-one, wall clock) and the step time including the publish; and the intervals between
+``reference``, ``controller`` and, with a model, ``model_server`` (hybrid mode; serving the
+forward inversion when ``--forward-model`` is given) as processes over DDS (own domain,
+loopback) and reports the controller's own loop figures from /diagnostics: steps, deadline
+misses (a 100 Hz tick later than 1.5 periods after the previous one, wall clock) and the step
+time including the publish; and the intervals between
 ``/ipmc/command`` messages as a subscriber receives them.
 
 Goals (issue 5): p99 <= 200 us per step; deadline misses < 0.1 %. Prints tables; not part of
 the pass/fail suite.
 
-    .venv/bin/python benchmarks/bench_controller.py [--steps 20000] [--model FILE] [--graph 30]
+    .venv/bin/python benchmarks/bench_controller.py [--steps 20000] [--model FILE]
+        [--forward-model FILE] [--graph 30]
 """
 
 from __future__ import annotations
@@ -98,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=20000, help="steps per case")
     parser.add_argument("--model", help="inverse model file (default: fit one here)")
+    parser.add_argument("--forward-model", help="forward model file with voltage channels: "
+                        "time its online inversion too (and serve it in the graph run)")
     parser.add_argument("--graph", type=float, default=30.0, metavar="SECONDS",
                         help="also run the node graph over DDS (real-time clock) this long "
                              "(default 30; 0: skip)")
@@ -129,23 +137,45 @@ def main(argv: list[str] | None = None) -> int:
     else:
         print(f"inverse model case skipped: {how}")
 
+    if args.forward_model:
+        from ipmc_model.forward_inversion import ForwardInversionFeedforward
+        from ipmc_model.persistence import load_model
+
+        forward = load_model(args.forward_model)
+        fwd = ForwardInversionFeedforward(forward).stepper()
+        ctl_f = HybridController()
+
+        def step_forward(k, r, y):
+            u_ff = fwd.step(r)
+            u = ctl_f.compute_command(r, y, DT_S, u_ff)
+            fwd.record_applied(u)
+            return u
+
+        rows.append(("forward inversion + hybrid", _loop(step_forward, n)))
+        print(f"forward model: {args.forward_model}; "
+              f"{getattr(forward.regressor_, 'n_centers_', '?')} kernel centres; "
+              f"{fwd.series_steps} of {n} steps by the series, bound "
+              f"{fwd.series_error_bound_mm:.1e} mm")
+
     load = os.getloadavg()[0]
     print(f"\nper-step compute time, {n} steps each, closed loop on IpmcPlant at 100 Hz; "
           f"{os.cpu_count()} CPUs, load average {load:.1f}")
     print("wall = perf_counter (includes preemption by other processes), "
           "cpu = this thread's CPU time")
-    print(f"{'case':<26}{'wall p50':>10}{'wall p99':>10}{'wall max':>10}"
+    print(f"{'case':<28}{'wall p50':>10}{'wall p99':>10}{'wall max':>10}"
           f"{'cpu p50':>10}{'cpu p99':>10}   (us)")
     for name, (wall, cpu) in rows:
         w50, w99, wmx = _stats(wall)
         c50, c99, _ = _stats(cpu)
-        print(f"{name:<26}{w50:>10.1f}{w99:>10.1f}{wmx:>10.1f}{c50:>10.1f}{c99:>10.1f}")
+        print(f"{name:<28}{w50:>10.1f}{w99:>10.1f}{wmx:>10.1f}{c50:>10.1f}{c99:>10.1f}")
     worst_wall = max(_stats(w)[1] for _, (w, _c) in rows)
     worst_cpu = max(_stats(c)[1] for _, (_w, c) in rows)
     for label, value in (("wall", worst_wall), ("cpu", worst_cpu)):
         verdict = "meets" if value <= 200.0 else "MISSES"
         print(f"worst {label} p99 {value:.1f} us: {verdict} the 200 us goal")
-    if args.graph > 0:
+    if args.graph > 0 and args.forward_model:
+        _graph(args.graph, args.forward_model, forward=True)
+    elif args.graph > 0:
         model_file = args.model
         if model_file is None and model is not None:
             from ipmc_model.persistence import save_model
@@ -155,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0 if math.isfinite(worst_wall) else 1
 
 
-def _graph(seconds: float, model_file: str | None) -> None:
+def _graph(seconds: float, model_file: str | None, forward: bool = False) -> None:
     """sim_plant (real time) + reference + controller (+ model_server, hybrid, when there is an
     inverse model) over DDS; print the controller's loop diagnostics and the command intervals
     seen by a subscriber."""
@@ -171,8 +201,9 @@ def _graph(seconds: float, model_file: str | None) -> None:
              [str(bin_dir / "reference"), "--ros-args", "-p", "kind:=sine"],
              [str(bin_dir / "controller"), "--ros-args", "-p", f"mode:={mode}"]]
     if model_file:
-        argvs.append([str(bin_dir / "model_server"), "--ros-args",
-                      "-p", f"inverse_model_file:={model_file}"])
+        argvs.append([str(bin_dir / "model_server"), "--ros-args", "-p",
+                      f"{'model_file' if forward else 'inverse_model_file'}:={model_file}"]
+                     + (["-p", "feedforward:=forward-inversion"] if forward else []))
     procs = [subprocess.Popen(a, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
              for a in argvs]
     loop: dict[str, str] = {}
@@ -218,7 +249,8 @@ def _graph(seconds: float, model_file: str | None) -> None:
     misses = int(loop["deadline_misses"]) - int(start["deadline_misses"])
     ratio = misses / ticks if ticks else math.nan
     verdict = "meets" if ratio < 1e-3 else "MISSES"
-    print(f"\ngraph over DDS, {seconds:g} s at 100 Hz (sim_plant real time, {mode} mode): "
+    print(f"\ngraph over DDS, {seconds:g} s at 100 Hz (sim_plant real time, {mode} mode"
+          f"{', forward inversion in model_server' if forward else ''}): "
           f"{ticks} steps, {misses} deadline misses ({ratio:.3%}): {verdict} the 0.1 % goal; "
           f"step incl. publish p50 {loop['step_p50_us']} us, p99 {loop['step_p99_us']} us "
           f"(last 2000 steps)")

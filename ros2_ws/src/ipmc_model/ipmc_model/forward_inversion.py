@@ -257,17 +257,21 @@ class ForwardInversionStepper:
             k = np.arange(SERIES_TERMS)
             k_fact = np.cumprod(np.concatenate(([1.0], k[1:].astype(float))))       # k!
             self._k_fact = k_fact.tolist()
-            # T[g, k] = (-2 gamma u_g)^k / k!: the series on the grid is T @ moments.
-            self._T = (-2.0 * g * self._fine_u[:, None]) ** k / k_fact
+            T = (-2.0 * g * self._fine_u[:, None]) ** k / k_fact     # (-2 gamma u_g)^k / k!
             # The row's change per volt w, and what depends on it alone.
             per_volt = np.concatenate((np.ones(self._raw), 1.0 - self._a))
             self._w = per_volt / self._u_scale                                 # (d,)
             self._Cw = reg.centers_ @ self._w                                  # (M,)
             self._W = float(self._w @ self._w)
-            self._gauss = np.exp(-g * self._W * self._fine_u ** 2)            # (G,)
+            # GT[k, g] = exp(-gamma W u_g^2) (-2 gamma u_g)^k / k!: the prediction on the
+            # grid is intercept + moments @ GT.
+            self._GT = np.ascontiguousarray(
+                (np.exp(-g * self._W * self._fine_u ** 2)[:, None] * T).T)
+            self._C2g = 2.0 * g * reg.centers_
+            self._neg_g_csq = -g * reg._center_sq
             self._x_per_B = 2.0 * g * ff.u_limit_v
         self._zeros_raw = np.zeros(self._raw)
-        self._z_next: float | None = None   # the series' prediction at the chosen voltage
+        self._moments: list | None = None   # the last step's series, while its state holds
 
     # -- the model -----------------------------------------------------------------------------
     def _f(self, X: np.ndarray) -> np.ndarray:
@@ -316,12 +320,16 @@ class ForwardInversionStepper:
         reg, g = self._m.regressor_, self._gamma
         ch0 = np.concatenate((self._zeros_raw, self._a * self._mem))   # channels at u = 0
         z0 = (ch0 - self._u_mean) / self._u_scale
-        A = reg._center_sq - 2.0 * (reg.centers_ @ z0) + z0 @ z0     # ||z0 - c_j||^2 (M,)
-        B = self._w @ z0 - self._Cw                                  # w.(z0 - c_j)   (M,)
-        beta = reg.coef_ * np.exp(-g * np.maximum(A, 0.0))
+        # beta_j = alpha_j exp(-gamma ||z0 - c_j||^2), in place (this is the hot loop).
+        beta = self._C2g @ z0
+        beta += self._neg_g_csq
+        beta -= g * float(z0 @ z0)
+        np.exp(beta, out=beta)
+        beta *= reg.coef_
+        B = float(self._w @ z0) - self._Cw                           # w.(z0 - c_j)   (M,)
         # Remainder of exp(x) after K terms, |x| <= x_max: x_max^K / K! * exp(x_max); the
         # fewest terms that meet the tolerance.
-        x_max = self._x_per_B * float(np.abs(B).max())
+        x_max = self._x_per_B * max(float(B.max()), -float(B.min()))
         scale = float(np.abs(beta).sum()) * math.exp(x_max) * abs(self._m.y_scale_)
         for K in range(4, SERIES_TERMS + 1):
             bound = scale * x_max ** K / (self._k_fact[K - 1] * K)
@@ -334,12 +342,14 @@ class ForwardInversionStepper:
         for k in range(1, K):
             np.multiply(powers[k - 1], B, out=powers[k])
         moments = powers @ beta                                      # (K,)
-        err = (reg.intercept_ + self._gauss * (self._T[:, :K] @ moments)) * self._m.y_scale_
-        err += self._m.y_mean_ - r_mm                                # (G,), mm
+        # Prediction - target on the grid, in the model's scaled units (y_scale_ per mm).
+        err = moments @ self._GT[:K]
+        err -= (r_mm - self._m.y_mean_) / self._m.y_scale_ - reg.intercept_
         J = err * err
         u_g = self._fine_u
         if self._ff.smoothness_mm2_per_v2:
-            J += self._ff.smoothness_mm2_per_v2 * (u_g - self._u_prev) ** 2
+            weight = self._ff.smoothness_mm2_per_v2 / self._m.y_scale_ ** 2   # scaled units
+            J += weight * (u_g - self._u_prev) ** 2
         i = int(np.argmin(J))
         u = float(u_g[i])
         if 0 < i < J.size - 1:
@@ -347,13 +357,18 @@ class ForwardInversionStepper:
             if curv > 0.0:
                 u += 0.5 * (J[i - 1] - J[i + 1]) / curv * (u_g[1] - u_g[0])
         u = min(self._ff.u_limit_v, max(-self._ff.u_limit_v, u))
-        x, s, term = -2.0 * g * u, 0.0, 1.0
-        for k, mk in enumerate(moments.tolist()):
-            s += mk * term
-            term *= x / (k + 1)
-        self._z_next = reg.intercept_ + math.exp(-g * self._W * u * u) * s
+        self._moments = moments.tolist()
         self.series_error_bound_mm = max(self.series_error_bound_mm, bound)
         return u
+
+    def _series_at(self, u: float) -> float:
+        """The scaled one-sample prediction at voltage u (|u| <= u_limit_v) by the last series."""
+        g = self._gamma
+        x, s, term = -2.0 * g * u, 0.0, 1.0
+        for k, mk in enumerate(self._moments):
+            s += mk * term
+            term *= x / (k + 1)
+        return self._m.regressor_.intercept_ + math.exp(-g * self._W * u * u) * s
 
     def _cost(self, u: np.ndarray, target: np.ndarray) -> np.ndarray:
         err = self._simulate(u) - target
@@ -369,6 +384,7 @@ class ForwardInversionStepper:
         slope = 0.0 if self._r_prev is None else r - self._r_prev
         self._r_prev = r
         target = r + slope * self._j
+        self._moments = None
         u = self._series_minimise(r) if self._series else None
         if u is not None:
             self.series_steps += 1
@@ -376,8 +392,7 @@ class ForwardInversionStepper:
             u = self._grid_minimise(target)
         u = min(self._ff.u_limit_v, max(-self._ff.u_limit_v, u))
         self._saved = (self._ub.copy(), self._yb.copy(), self._mem.copy(), self._u_prev)
-        self._advance(u, self._z_next)
-        self._z_next = None
+        self._advance(u, None if self._moments is None else self._series_at(u))
         return u
 
     def _grid_minimise(self, target: np.ndarray) -> float:
@@ -425,4 +440,6 @@ class ForwardInversionStepper:
             return
         ub, yb, mem, u_prev = self._saved
         self._ub[:], self._yb[:], self._mem, self._u_prev = ub, yb, mem.copy(), u_prev
-        self._advance(u)
+        # From the same state the last step's series holds for any voltage in the range.
+        series = self._moments is not None and abs(u) <= self._ff.u_limit_v
+        self._advance(u, self._series_at(u) if series else None)

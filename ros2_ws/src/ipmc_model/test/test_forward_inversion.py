@@ -199,6 +199,20 @@ def test_auto_series_agrees_with_the_grid_and_with_the_model(lssvm_nfir):
     assert auto.series_error_bound_mm <= 1e-6
     # The series' prediction (the model's advanced state) is the model's own free run.
     np.testing.assert_allclose(predicted, model.simulate(u_auto), rtol=0, atol=1e-8)
+    # The smoothness penalty (mm^2/V^2) weighs the same in both.
+    smooth = {m: ForwardInversionFeedforward(model, smoothness_mm2_per_v2=0.05, method=m)
+              for m in ("auto", "grid")}
+    u_smooth = {m: run(ff, target[:300]) for m, ff in smooth.items()}
+    assert np.max(np.abs(u_smooth["auto"] - u_smooth["grid"])) < 1e-3
+    assert np.max(np.abs(u_smooth["auto"] - u_auto[:300])) > 1e-2   # and it does something
+    # An applied voltage other than the returned one (the hybrid adds the PID's): the state
+    # still follows the model's free run on what was applied.
+    st, applied, predicted = ForwardInversionFeedforward(model).stepper(), [], []
+    for k, r in enumerate(target[:400]):
+        applied.append(float(np.clip(st.step(r) + 0.3 * np.sin(0.05 * k), -3.0, 3.0)))
+        st.record_applied(applied[-1])
+        predicted.append(st.predicted_mm)
+    np.testing.assert_allclose(predicted, model.simulate(np.array(applied)), rtol=0, atol=1e-8)
     # Both minimise the same cost, the grid to about 1e-3 V: measured 1e-5 V apart.
     assert np.max(np.abs(u_auto - u_grid)) < 1e-3
     assert np.sqrt(np.mean((plant(u_auto) - target) ** 2)) < 0.02
