@@ -43,6 +43,11 @@ ANTIWINDUP_STRATEGIES = ("back_calculation", "none")
 DEFAULT_K = 1.2
 DEFAULT_TI_S = 0.87
 DEFAULT_TD_S = 0.13
+# N = 3, not the textbooks' 10: with the laser's 0.01 mm noise, TD = 0.13 s and N = 10 put a
+# 0.12 V (std) ripple on the command; near the 3 V limit its peaks clip, back-calculation then
+# bleeds the integrator and a hold kept a -0.023 mm offset (-4 mm hold after the rise: 0.14 mm).
+# N = 3: 0.04 V ripple; every tracking cell of docs/control.md improved (session 5).
+DEFAULT_N = 3.0
 #: Output limit of the rig's H-bridge, V.
 DEFAULT_U_LIMIT_V = 3.0
 
@@ -94,7 +99,7 @@ class PID:
         Derivative time TD, s (>= 0; 0 disables the derivative action).
     n : float
         Derivative filter ratio N (> 0): the derivative is low-passed with time constant
-        ``td_s / n`` s. Typical 8 to 20.
+        ``td_s / n`` s. Textbooks say 8 to 20; the default is 3 (see DEFAULT_N).
     u_clamp_max, u_clamp_min : float
         Output limits, V (``u_clamp_min < u_clamp_max``; infinite values are allowed).
     antiwindup_strategy : {"back_calculation", "none"}
@@ -125,7 +130,7 @@ class PID:
     """
 
     def __init__(self, k: float = DEFAULT_K, ti_s: float = DEFAULT_TI_S,
-                 td_s: float = DEFAULT_TD_S, *, n: float = 10.0,
+                 td_s: float = DEFAULT_TD_S, *, n: float = DEFAULT_N,
                  u_clamp_max: float = DEFAULT_U_LIMIT_V, u_clamp_min: float = -DEFAULT_U_LIMIT_V,
                  antiwindup_strategy: str = "back_calculation",
                  tracking_time_constant: float | None = None) -> None:

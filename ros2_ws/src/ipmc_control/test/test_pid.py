@@ -16,7 +16,8 @@ from numpy.testing import assert_allclose
 
 from ipmc_control.pid import PID, ControlParameterError
 
-K, TI, TD, N = 1.2, 0.87, 0.13, 10.0
+K, TI, TD = 1.2, 0.87, 0.13   # the paper's
+N = 3.0   # ours (the paper gives none): ipmc_control.pid.DEFAULT_N says why
 H = 0.01
 
 

@@ -61,7 +61,7 @@ from rclpy.qos import (
 from std_msgs.msg import Float64
 
 from ipmc_control.hybrid import HybridController, check_mode
-from ipmc_control.pid import PID, ControlParameterError
+from ipmc_control.pid import DEFAULT_N, PID, ControlParameterError
 from ipmc_driver.dataio import stamp_ns
 from ipmc_driver.node_runtime import run_node
 
@@ -107,8 +107,9 @@ class Controller(Node):
         self.declare_parameter("k", 1.2, d(description="proportional gain K, V/mm (paper Eq. 21)"))
         self.declare_parameter("ti_s", 0.87, d(description="integral time TI, s (> 0)"))
         self.declare_parameter("td_s", 0.13, d(description="derivative time TD, s (>= 0)"))
-        self.declare_parameter("n", 10.0, d(
-            description="derivative filter ratio N: filter time constant TD/N"))
+        self.declare_parameter("n", DEFAULT_N, d(
+            description="derivative filter ratio N: filter time constant TD/N (default 3: "
+                        "see ipmc_control.pid.DEFAULT_N)"))
         self.declare_parameter("tracking_time_constant", 0.0, d(
             description="back-calculation tracking time Tt, s; 0 = sqrt(TI TD)"))
         self.declare_parameter("u_clamp_max", 3.0, d(description="upper command limit, V"))
