@@ -4,7 +4,8 @@
 m/s (analytic for the smooth generators, 0 on a step train's levels; the controller's
 derivative acts on the error with it) (frame ``ipmc_clamp``), published
 every ``1/rate_hz`` s of the node's clock (ROS time: with ``use_sim_time:=true`` it follows
-``/clock``). The generator (``ipmc_control.references``) is chosen by ``kind``:
+``/clock``, and also ticks on each ``/clock`` message, so that it starts with a lock-step
+plant's first sample). The generator (``ipmc_control.references``) is chosen by ``kind``:
 
 - ``constant``: ``value_mm``;
 - ``sine``: ``amplitude_mm``, ``frequency_hz``, ``offset_mm``, ``phase_rad``;
