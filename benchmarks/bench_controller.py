@@ -82,6 +82,20 @@ def _loop(step, n_steps: int) -> tuple[list[int], list[int]]:
     return wall, cpu
 
 
+def _feedforward_hybrid(stepper):
+    """``step(k, r, y)`` of the in-process loop: the feedforward stepper's voltage, the hybrid
+    command, and the applied voltage back into the stepper's history."""
+    ctl = HybridController()
+
+    def step(k, r, y):
+        u_ff = stepper.step(r)
+        u = ctl.compute_command(r, y, DT_S, u_ff)
+        stepper.record_applied(u)
+        return u
+
+    return step
+
+
 def _inverse_model(path: str | None):
     try:
         from ipmc_model.narx import InverseNarxModel
@@ -122,16 +136,7 @@ def main(argv: list[str] | None = None) -> int:
 
     model, how = _inverse_model(args.model)
     if model is not None:
-        stepper = model.stepper()
-        ctl = HybridController()
-
-        def step(k, r, y):
-            u_ff = stepper.step(r)
-            u = ctl.compute_command(r, y, DT_S, u_ff)
-            stepper.record_applied(u)
-            return u
-
-        rows.append(("inverse model + hybrid", _loop(step, n)))
+        rows.append(("inverse model + hybrid", _loop(_feedforward_hybrid(model.stepper()), n)))
         n_centers = getattr(model.regressor_, "n_centers_", "?")
         print(f"inverse model: {how}; {n_centers} kernel centres")
     else:
@@ -143,15 +148,7 @@ def main(argv: list[str] | None = None) -> int:
 
         forward = load_model(args.forward_model)
         fwd = ForwardInversionFeedforward(forward).stepper()
-        ctl_f = HybridController()
-
-        def step_forward(k, r, y):
-            u_ff = fwd.step(r)
-            u = ctl_f.compute_command(r, y, DT_S, u_ff)
-            fwd.record_applied(u)
-            return u
-
-        rows.append(("forward inversion + hybrid", _loop(step_forward, n)))
+        rows.append(("forward inversion + hybrid", _loop(_feedforward_hybrid(fwd), n)))
         print(f"forward model: {args.forward_model}; "
               f"{getattr(forward.regressor_, 'n_centers_', '?')} kernel centres; "
               f"{fwd.series_steps} of {n} steps by the series, bound "

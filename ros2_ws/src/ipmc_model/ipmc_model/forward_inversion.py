@@ -100,8 +100,9 @@ class ForwardInversionFeedforward:
     -----
     Cost per step: ``grid``: (grid_points + refine_points) * horizon_samples kernel rows,
     batched, plus one to advance the model; ``auto`` where the series applies: one kernel
-    exponential per centre and at most SERIES_TERMS products over the centres (80 us p50,
-    under 200 us p99 on an 800-centre model, against 600 / 1100 us for the grid).
+    exponential per centre and at most SERIES_TERMS products over the centres (on an 800-centre
+    model, 72-136 us p50 and 150-360 us p99 between runs on a shared 2-core machine, against
+    about 600 / 1100 us for the grid).
     """
 
     def __init__(self, forward_model: NarxModel, *,
