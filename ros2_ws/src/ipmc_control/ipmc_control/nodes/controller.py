@@ -52,28 +52,19 @@ from geometry_msgs.msg import PointStamped, Vector3Stamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import (
-    QoSDurabilityPolicy,
-    QoSHistoryPolicy,
-    QoSProfile,
-    QoSReliabilityPolicy,
-)
+from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 from std_msgs.msg import Float64
 
 from ipmc_control.hybrid import HybridController, check_mode
 from ipmc_control.pid import DEFAULT_N, PID, ControlParameterError
 from ipmc_driver.dataio import stamp_ns
 from ipmc_driver.node_runtime import run_node
+from ipmc_driver.qos import PAIRED_SAMPLE_QOS
 
 # Inputs: reliable and deep like their publishers (docs/interfaces.md), so that a lock-step
 # burst loses no sample; the loop keys references and feedforwards by stamp.
 INPUT_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
                        reliability=QoSReliabilityPolicy.RELIABLE)
-# trigger:=measurement pairs feedforwards with references by stamp and waits for them: take
-# those published before this subscription matched too (model_server keeps the last 100).
-PAIRED_FEEDFORWARD_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
-                                    reliability=QoSReliabilityPolicy.RELIABLE,
-                                    durability=QoSDurabilityPolicy.TRANSIENT_LOCAL)
 COMMAND_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
                          reliability=QoSReliabilityPolicy.RELIABLE)
 TRIGGERS = ("timer", "measurement")
@@ -183,13 +174,15 @@ class Controller(Node):
             if self.trigger == "measurement" else None)
         self._answer_ns = 0  # stamp of the sample the next command answers
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        # trigger:=measurement pairs references and feedforwards by stamp and waits for them:
+        # take those published before this subscription matched too (their publishers keep 100).
+        paired_qos = PAIRED_SAMPLE_QOS if self.trigger == "measurement" else INPUT_QOS
         self.create_subscription(PointStamped, "/ipmc/reference", self._on_reference,
-                                 INPUT_QOS)
+                                 paired_qos)
         self.create_subscription(PointStamped, "/ipmc/displacement", self._on_displacement,
                                  INPUT_QOS)
         self.create_subscription(Vector3Stamped, "/ipmc/feedforward", self._on_feedforward,
-                                 PAIRED_FEEDFORWARD_QOS if self.trigger == "measurement"
-                                 else INPUT_QOS)
+                                 paired_qos)
 
         if self.trigger == "timer":
             self.create_timer(1.0 / self.rate_hz, self._on_tick)

@@ -29,19 +29,18 @@ import math
 from geometry_msgs.msg import PointStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
-from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 from ipmc_control.pid import ControlParameterError
 from ipmc_control.references import KINDS, Reference, make_reference
 from ipmc_driver.node_runtime import run_node
+from ipmc_driver.qos import LATCHED_CLOCK_QOS, PAIRED_SAMPLE_QOS
 
-# Reliable and deep (docs/interfaces.md): in lock-step bursts no reference sample may be lost.
-REFERENCE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
-                           reliability=QoSReliabilityPolicy.RELIABLE)
-# Reliable (rclpy's TimeSource listens best effort): the first /clock must not be missed.
-CLOCK_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
-                       reliability=QoSReliabilityPolicy.RELIABLE)
+# Reliable and deep (docs/interfaces.md): in lock-step bursts no reference sample may be lost;
+# transient local: a late-matching controller or model_server still gets the first ones.
+REFERENCE_QOS = PAIRED_SAMPLE_QOS
+# The first /clock must not be missed (rclpy's TimeSource listens best effort, volatile).
+CLOCK_QOS = LATCHED_CLOCK_QOS
 # Parameter name -> (default, description); which ones each kind takes.
 # Longest catch-up burst, samples: below the subscribers' queue depth (100).
 MAX_BURST = 90

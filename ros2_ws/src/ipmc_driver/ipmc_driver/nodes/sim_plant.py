@@ -34,6 +34,7 @@ from std_msgs.msg import Float64
 from ipmc_driver.dataio import stamp_ns
 from ipmc_driver.node_runtime import run_node
 from ipmc_driver.plant import EFFECTS, IpmcPlant, load_plant_params
+from ipmc_driver.qos import LATCHED_CLOCK_QOS as CLOCK_QOS
 
 # Every sample matters to recorders and model fitting: reliable, deep enough for bursts.
 SAMPLE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
@@ -98,7 +99,7 @@ class SimPlant(Node):
 
         self.pub_voltage = self.create_publisher(Vector3Stamped, "/ipmc/voltage", SAMPLE_QOS)
         self.pub_disp = self.create_publisher(PointStamped, "/ipmc/displacement", SAMPLE_QOS)
-        self.pub_clock = (self.create_publisher(ClockMsg, "/clock", 10)
+        self.pub_clock = (self.create_publisher(ClockMsg, "/clock", CLOCK_QOS)
                           if self.lockstep else None)
         self.create_subscription(Float64, "/ipmc/command", self._on_command, COMMAND_QOS)
         self._sample_ns = -1      # stamp of the last published sample

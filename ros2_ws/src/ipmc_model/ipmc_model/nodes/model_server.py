@@ -53,6 +53,7 @@ from std_srvs.srv import Trigger
 
 from ipmc_driver.dataio import stamp_ns
 from ipmc_driver.node_runtime import run_node
+from ipmc_driver.qos import PAIRED_SAMPLE_QOS
 from ipmc_model.forward_inversion import ForwardInversionFeedforward
 from ipmc_model.narx import InverseNarxModel, NarxModel
 from ipmc_model.persistence import load_model
@@ -64,12 +65,9 @@ SAMPLE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
                         durability=QoSDurabilityPolicy.VOLATILE)
 # A sample topic like the others (docs/interfaces.md: reliable, depth 100): at depth 10 a busy
 # lock-step run lost feedforwards, and the controller waiting for one fell back to PID.
-# Transient local: a controller that matches this publisher late (discovery under load) still
-# gets the first feedforwards, which a lock-step controller waits for; volatile subscribers
-# (a recorder, ros2 topic echo) match as before.
-FEEDFORWARD_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
-                             reliability=QoSReliabilityPolicy.RELIABLE,
-                             durability=QoSDurabilityPolicy.TRANSIENT_LOCAL)
+# Transient local (ipmc_driver.qos): a controller that matches late still gets the first
+# feedforwards, which a lock-step controller waits for; and this node the first references.
+FEEDFORWARD_QOS = PAIRED_SAMPLE_QOS
 DIAGNOSTICS_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
                              reliability=QoSReliabilityPolicy.RELIABLE)
 HARDWARE_ID = "ipmc"
@@ -301,7 +299,8 @@ class ModelServer(Node):
         self.pub_pred = self.create_publisher(PointStamped, "/ipmc/predicted", SAMPLE_QOS)
         self.pub_res = self.create_publisher(PointStamped, "/ipmc/residual", SAMPLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
-        self.create_subscription(PointStamped, "/ipmc/reference", self._on_reference, SAMPLE_QOS)
+        self.create_subscription(PointStamped, "/ipmc/reference", self._on_reference,
+                                 PAIRED_SAMPLE_QOS)
         self.create_subscription(Vector3Stamped, "/ipmc/voltage", self._on_voltage, SAMPLE_QOS)
         self.create_subscription(PointStamped, "/ipmc/displacement", self._on_displacement,
                                  SAMPLE_QOS)

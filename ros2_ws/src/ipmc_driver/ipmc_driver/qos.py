@@ -1,0 +1,19 @@
+"""QoS profiles shared by the nodes of several packages (no node code here)."""
+
+from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
+
+# A lock-step sim_plant's /clock: reliable and transient local, depth 1 (the time is state). A
+# node that matches the plant after its first sample still gets t = 0: the reference node
+# ticks on it, and a lock-step start waits on that tick. rclpy's own best-effort, volatile
+# /clock subscription matches it as before.
+LATCHED_CLOCK_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=1,
+                               reliability=QoSReliabilityPolicy.RELIABLE,
+                               durability=QoSDurabilityPolicy.TRANSIENT_LOCAL)
+
+# Sample topics a lock-step loop pairs by stamp and waits for (/ipmc/reference,
+# /ipmc/feedforward): reliable, depth 100 as every sample topic (docs/interfaces.md), and
+# transient local, so that a subscriber that matches late (discovery under load) still gets
+# the first samples. Volatile subscribers (a recorder, ros2 topic echo) match as before.
+PAIRED_SAMPLE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
+                               reliability=QoSReliabilityPolicy.RELIABLE,
+                               durability=QoSDurabilityPolicy.TRANSIENT_LOCAL)
