@@ -66,7 +66,7 @@ SAMPLE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
 # A sample topic like the others (docs/interfaces.md: reliable, depth 100): at depth 10 a busy
 # lock-step run lost feedforwards, and the controller waiting for one fell back to PID.
 # Transient local (ipmc_driver.qos): a controller that matches late still gets the first
-# feedforwards, which a lock-step controller waits for; and this node the first references.
+# feedforwards, which a lock-step controller waits for.
 FEEDFORWARD_QOS = PAIRED_SAMPLE_QOS
 DIAGNOSTICS_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
                              reliability=QoSReliabilityPolicy.RELIABLE)
@@ -299,8 +299,9 @@ class ModelServer(Node):
         self.pub_pred = self.create_publisher(PointStamped, "/ipmc/predicted", SAMPLE_QOS)
         self.pub_res = self.create_publisher(PointStamped, "/ipmc/residual", SAMPLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
-        self.create_subscription(PointStamped, "/ipmc/reference", self._on_reference,
-                                 PAIRED_SAMPLE_QOS)
+        # Volatile: a transient-local subscription would refuse a volatile reference publisher
+        # (a user's, ros2 topic pub).
+        self.create_subscription(PointStamped, "/ipmc/reference", self._on_reference, SAMPLE_QOS)
         self.create_subscription(Vector3Stamped, "/ipmc/voltage", self._on_voltage, SAMPLE_QOS)
         self.create_subscription(PointStamped, "/ipmc/displacement", self._on_displacement,
                                  SAMPLE_QOS)
