@@ -14,7 +14,7 @@ from geometry_msgs.msg import PointStamped  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 from std_msgs.msg import Float64  # noqa: E402
 
-from ipmc_driver.nodes.sim_plant import SAMPLE_QOS  # noqa: E402
+from ipmc_driver.qos import SAMPLE_QOS  # noqa: E402
 
 LEVELS_V = [0.0, 1.5, -2.0, 0.5, 0.0]
 HOLD_S = 1.0

@@ -2,6 +2,16 @@
 
 from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 
+# Every /ipmc/* sample matters to recorders, model fitting and the residual (which pairs samples
+# by stamp): reliable, deep enough for lock-step bursts (docs/interfaces.md).
+SAMPLE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
+                        reliability=QoSReliabilityPolicy.RELIABLE,
+                        durability=QoSDurabilityPolicy.VOLATILE)
+COMMAND_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
+                         reliability=QoSReliabilityPolicy.RELIABLE)
+DIAGNOSTICS_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
+                             reliability=QoSReliabilityPolicy.RELIABLE)
+
 # A lock-step sim_plant's /clock: reliable and transient local, depth 1 (the time is state). A
 # node that matches the plant after its first sample still gets t = 0: the reference node
 # ticks on it, and a lock-step start waits on that tick. rclpy's own best-effort, volatile

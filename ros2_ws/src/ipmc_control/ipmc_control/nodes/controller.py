@@ -52,21 +52,17 @@ from geometry_msgs.msg import PointStamped, Vector3Stamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 from std_msgs.msg import Float64
 
 from ipmc_control.hybrid import HybridController, check_mode
 from ipmc_control.pid import DEFAULT_N, PID, ControlParameterError
 from ipmc_driver.dataio import stamp_ns
 from ipmc_driver.node_runtime import run_node
-from ipmc_driver.qos import PAIRED_SAMPLE_QOS
+from ipmc_driver.qos import COMMAND_QOS, PAIRED_SAMPLE_QOS, SAMPLE_QOS
 
 # Inputs: reliable and deep like their publishers (docs/interfaces.md), so that a lock-step
 # burst loses no sample; the loop keys references and feedforwards by stamp.
-INPUT_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
-                       reliability=QoSReliabilityPolicy.RELIABLE)
-COMMAND_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
-                         reliability=QoSReliabilityPolicy.RELIABLE)
+INPUT_QOS = SAMPLE_QOS
 TRIGGERS = ("timer", "measurement")
 GAIN_PARAMS = ("k", "ti_s", "td_s", "n", "tracking_time_constant")
 LIMIT_PARAMS = ("u_clamp_min", "u_clamp_max")

@@ -36,11 +36,6 @@ from ipmc_control.references import KINDS, Reference, make_reference
 from ipmc_driver.node_runtime import run_node
 from ipmc_driver.qos import LATCHED_CLOCK_QOS, PAIRED_SAMPLE_QOS
 
-# Reliable and deep (docs/interfaces.md): in lock-step bursts no reference sample may be lost;
-# transient local: a late-matching controller or model_server still gets the first ones.
-REFERENCE_QOS = PAIRED_SAMPLE_QOS
-# The first /clock must not be missed (rclpy's TimeSource listens best effort, volatile).
-CLOCK_QOS = LATCHED_CLOCK_QOS
 # Parameter name -> (default, description); which ones each kind takes.
 # Longest catch-up burst, samples: below the subscribers' queue depth (100).
 MAX_BURST = 90
@@ -113,13 +108,13 @@ class ReferenceNode(Node):
         self._next_k = 0   # index of the next sample to publish, stamped t0 + k / rate_hz
         self._period_ns = int(round(1e9 / self.rate_hz))
 
-        self.pub = self.create_publisher(PointStamped, "/ipmc/reference", REFERENCE_QOS)
+        self.pub = self.create_publisher(PointStamped, "/ipmc/reference", PAIRED_SAMPLE_QOS)
         self.create_timer(1.0 / self.rate_hz, self._on_tick)
         if self.get_parameter("use_sim_time").value:
             # A timer on /clock first fires one period after the first /clock message. A
             # lock-step plant publishes its sample 0 and waits for the command, which waits for
             # this reference: tick on /clock itself, so the reference starts at the plant's t = 0.
-            self.create_subscription(ClockMsg, "/clock", self._on_clock, CLOCK_QOS)
+            self.create_subscription(ClockMsg, "/clock", self._on_clock, LATCHED_CLOCK_QOS)
         self.get_logger().info(
             f"reference: {self.get_parameter('kind').value} at {self.rate_hz:g} Hz")
 

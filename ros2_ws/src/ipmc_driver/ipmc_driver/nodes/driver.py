@@ -28,7 +28,6 @@ from geometry_msgs.msg import PointStamped, Vector3Stamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 from std_msgs.msg import Float64
 
 from ipmc_driver.arc import D_MM, L1_MM, L2_MM, ArcGeometry
@@ -44,16 +43,7 @@ from ipmc_driver.protocol import (
     encode_message,
     parse_frame,
 )
-
-# Every sample matters to recorders and model fitting: reliable, deep enough for bursts
-# (docs/interfaces.md).
-SAMPLE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
-                        reliability=QoSReliabilityPolicy.RELIABLE,
-                        durability=QoSDurabilityPolicy.VOLATILE)
-COMMAND_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
-                         reliability=QoSReliabilityPolicy.RELIABLE)
-DIAGNOSTICS_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
-                             reliability=QoSReliabilityPolicy.RELIABLE)
+from ipmc_driver.qos import COMMAND_QOS, DIAGNOSTICS_QOS, SAMPLE_QOS
 
 U_MAX_LIMIT_V = 3.0  # above 3 V the paper's actuators bent past 90 degrees (section 2.1)
 BACKOFF_FIRST_S = 0.5

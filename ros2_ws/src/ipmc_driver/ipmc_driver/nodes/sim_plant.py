@@ -27,21 +27,14 @@ from geometry_msgs.msg import PointStamped, Vector3Stamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import Float64
 
 from ipmc_driver.dataio import stamp_ns
 from ipmc_driver.node_runtime import run_node
 from ipmc_driver.plant import EFFECTS, IpmcPlant, load_plant_params
-from ipmc_driver.qos import LATCHED_CLOCK_QOS as CLOCK_QOS
+from ipmc_driver.qos import COMMAND_QOS, LATCHED_CLOCK_QOS, SAMPLE_QOS
 
-# Every sample matters to recorders and model fitting: reliable, deep enough for bursts.
-SAMPLE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
-                        reliability=QoSReliabilityPolicy.RELIABLE,
-                        durability=QoSDurabilityPolicy.VOLATILE)
-COMMAND_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
-                         reliability=QoSReliabilityPolicy.RELIABLE)
 CLOCK_MODES = ("realtime", "lockstep")
 
 
@@ -99,7 +92,7 @@ class SimPlant(Node):
 
         self.pub_voltage = self.create_publisher(Vector3Stamped, "/ipmc/voltage", SAMPLE_QOS)
         self.pub_disp = self.create_publisher(PointStamped, "/ipmc/displacement", SAMPLE_QOS)
-        self.pub_clock = (self.create_publisher(ClockMsg, "/clock", CLOCK_QOS)
+        self.pub_clock = (self.create_publisher(ClockMsg, "/clock", LATCHED_CLOCK_QOS)
                           if self.lockstep else None)
         self.create_subscription(Float64, "/ipmc/command", self._on_command, COMMAND_QOS)
         self._sample_ns = -1      # stamp of the last published sample

@@ -48,28 +48,21 @@ from geometry_msgs.msg import PointStamped, Vector3Stamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReliabilityPolicy
 from std_srvs.srv import Trigger
 
 from ipmc_driver.dataio import stamp_ns
 from ipmc_driver.node_runtime import run_node
-from ipmc_driver.qos import PAIRED_SAMPLE_QOS
+from ipmc_driver.qos import DIAGNOSTICS_QOS, PAIRED_SAMPLE_QOS, SAMPLE_QOS
 from ipmc_model.forward_inversion import ForwardInversionFeedforward
 from ipmc_model.narx import InverseNarxModel, NarxModel
 from ipmc_model.persistence import load_model
 from ipmc_model.residuals import ResidualMonitor
 
-# Every sample matters (the residual pairs samples by stamp): as sim_plant's SAMPLE_QOS.
-SAMPLE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
-                        reliability=QoSReliabilityPolicy.RELIABLE,
-                        durability=QoSDurabilityPolicy.VOLATILE)
 # A sample topic like the others (docs/interfaces.md: reliable, depth 100): at depth 10 a busy
 # lock-step run lost feedforwards, and the controller waiting for one fell back to PID.
 # Transient local (ipmc_driver.qos): a controller that matches late still gets the first
 # feedforwards, which a lock-step controller waits for.
 FEEDFORWARD_QOS = PAIRED_SAMPLE_QOS
-DIAGNOSTICS_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
-                             reliability=QoSReliabilityPolicy.RELIABLE)
 HARDWARE_ID = "ipmc"
 U_LIMIT_V = 3.0  # the actuators' safe limit (paper section 2.1); u_max_v may only be lower
 HISTORY_VOLTAGES = ("applied", "clamped", "model")
