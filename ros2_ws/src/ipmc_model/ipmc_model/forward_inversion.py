@@ -82,27 +82,30 @@ class ForwardInversionFeedforward:
     method : {"auto", "grid"}
         ``auto``: for an RBF model on the channels themselves (no past lags, no output lags:
         the NFIR that inverts smoothly) and a one-sample horizon, the regressor row is affine
-        in the voltage, z(u) = z0 + u w, so with A_j = ||z0 - c_j||^2, B_j = w.(z0 - c_j),
-        W = ||w||^2 the prediction is
+        in the voltage, z(u) = z0 + u w, so with A_j = ||z0 - c_j||^2, W = ||w||^2 and
+        w.(z0 - c_j) = s - D_j (s = w.z0 - c_mid changes each step; D_j = w.c_j - c_mid,
+        c_mid the middle of the w.c_j, does not) the prediction is
 
-            f(u) = b + exp(-gamma W u^2) sum_k (-2 gamma u)^k / k! sum_j beta_j B_j^k,
+            f(u) = b + exp(-gamma (W u^2 + 2 s u)) sum_k (2 gamma u)^k / k! sum_j beta_j D_j^k,
             beta_j = alpha_j exp(-gamma A_j),
 
-        a power series in u whose moments cost one pass over the centres. Over one sample the
-        low-passed channels move little, so 17 terms are exact to a bound computed each step
-        (below 1e-6 mm, else that step takes the grid); the series is evaluated on a
-        601-point grid (0.01 V at 3 V) with the same parabolic step, so the global minimum is
-        kept, and it gives the advanced model's prediction too. A raw-voltage channel moves
-        the row too far for it (the grid). Other models and horizons: the grid.
+        a power series in u whose moments are one product of the kernel values with powers of
+        D_j computed once. Over one sample the low-passed channels move little, so at most 17
+        terms are exact to a bound computed each step (below 1e-6 mm, else that step takes
+        the grid); the series is evaluated on a 601-point grid (0.01 V at 3 V) with the same
+        parabolic step, so the global minimum is kept, and it gives the advanced model's
+        prediction too. A raw-voltage channel moves the row too far for it (the grid). Other
+        models and horizons: the grid.
         ``grid``: always the grid.
 
     Notes
     -----
     Cost per step: ``grid``: (grid_points + refine_points) * horizon_samples kernel rows,
     batched, plus one to advance the model; ``auto`` where the series applies: one kernel
-    exponential per centre and at most SERIES_TERMS products over the centres (on an 800-centre
-    model, 72-136 us p50 and 150-360 us p99 between runs on a shared 2-core machine, against
-    about 600 / 1100 us for the grid).
+    exponential per centre and one (SERIES_TERMS + 1) x centres matrix-vector product (on an
+    800-centre model, step + record_applied 66 us against 105 us for session 5's version with
+    its powers of B_j formed each step, best of 5 x 3000 steps on a loaded 2-core machine;
+    the grid about 600 / 1100 us p50 / p99).
     """
 
     def __init__(self, forward_model: NarxModel, *,
@@ -239,6 +242,7 @@ class ForwardInversionStepper:
         self._ub = np.zeros((self._depth_u, m.n_inputs_))
         self._yb = np.full(self._depth_y, self._y_rest)
         self._mem = np.zeros(self._a.size)
+        self._one_minus_a = 1.0 - self._a
         self._r_prev: float | None = None
         self._u_prev = 0.0
         self._saved = None
@@ -254,25 +258,51 @@ class ForwardInversionStepper:
         if self._series:
             reg = m.regressor_
             g = self._gamma = float(reg._gamma)
-            self._fine_u = np.linspace(-ff.u_limit_v, ff.u_limit_v, SERIES_GRID_POINTS)
+            U = ff.u_limit_v
+            self._fine_u = np.linspace(-U, U, SERIES_GRID_POINTS)
             k = np.arange(SERIES_TERMS)
             k_fact = np.cumprod(np.concatenate(([1.0], k[1:].astype(float))))       # k!
-            self._k_fact = k_fact.tolist()
-            T = (-2.0 * g * self._fine_u[:, None]) ** k / k_fact     # (-2 gamma u_g)^k / k!
             # The row's change per volt w, and what depends on it alone.
             per_volt = np.concatenate((np.ones(self._raw), 1.0 - self._a))
             self._w = per_volt / self._u_scale                                 # (d,)
-            self._Cw = reg.centers_ @ self._w                                  # (M,)
             self._W = float(self._w @ self._w)
-            # GT[k, g] = exp(-gamma W u_g^2) (-2 gamma u_g)^k / k!: the prediction on the
-            # grid is intercept + moments @ GT.
-            self._GT = np.ascontiguousarray(
-                (np.exp(-g * self._W * self._fine_u ** 2)[:, None] * T).T)
-            self._C2g = 2.0 * g * reg.centers_
-            self._neg_g_csq = -g * reg._center_sq
-            self._x_per_B = 2.0 * g * ff.u_limit_v
-        self._zeros_raw = np.zeros(self._raw)
-        self._moments: list | None = None   # the last step's series, while its state holds
+            # w.c_j, centred on its mid-range: B_j = w.(z0 - c_j) = s - D_j with s changing
+            # each step and D_j fixed, so the moments sum_j beta_j D_j^k use powers of D_j
+            # computed once here (PT) and |2 gamma u D_j| <= x_max bounds the remainder for
+            # every step.
+            Cw = reg.centers_ @ self._w
+            self._c_mid = 0.5 * (float(Cw.max()) + float(Cw.min()))
+            D = Cw - self._c_mid
+            PT = np.empty((SERIES_TERMS, D.size))
+            PT[0] = 1.0
+            for i in range(1, SERIES_TERMS):
+                PT[i] = PT[i - 1] * D
+            # One matrix-vector product per step gives every moment sum_j alpha_j E_j D_j^k
+            # and, in its last row, sum_j |alpha_j| E_j (the bound's scale), with
+            # E_j = exp(-gamma ||z0 - c_j||^2) from one more: [2 gamma c_j, -gamma ||c_j||^2, 1]
+            # . [z0, 1, -gamma ||z0||^2].
+            self._PTc = np.ascontiguousarray(
+                np.vstack((PT * reg.coef_, np.abs(reg.coef_))))
+            self._exponent = np.ascontiguousarray(np.column_stack(
+                (2.0 * g * reg.centers_, -g * reg._center_sq, np.ones(D.size))))
+            self._z_aug = np.zeros(self._exponent.shape[1])
+            self._z_aug[-2] = 1.0
+            x_max = 2.0 * g * U * float(np.abs(D).max())
+            # Remainder of exp(x) after K terms, |x| <= x_max: e^x_max x_max^K / K!.
+            self._remainder = [math.exp(x_max) * x_max ** K / (k_fact[K - 1] * K)
+                               for K in range(1, SERIES_TERMS + 1)]
+            # GT[k, g] = (2 gamma u_g)^k / k!; the prediction on the grid is intercept +
+            # exp(-gamma W u_g^2 - 2 gamma s u_g) * (moments @ GT).
+            self._GT = np.ascontiguousarray(((2.0 * g * self._fine_u[:, None]) ** k / k_fact).T)
+            self._coef_scale = (2.0 * g) ** k / k_fact
+            self._prefactor = np.ascontiguousarray(np.column_stack(
+                (-2.0 * g * self._fine_u, -g * self._W * self._fine_u ** 2)))
+            # Row at u = 0 from the filter states: z0 = mem * a / scale - mean / scale.
+            self._z_mem = self._a / self._u_scale[self._raw:]
+            self._z_rest = -self._u_mean / self._u_scale
+        # The last step's series (its Horner coefficients in u, and s), while its state holds.
+        self._moments: list | None = None
+        self._s = 0.0
 
     # -- the model -----------------------------------------------------------------------------
     def _f(self, X: np.ndarray) -> np.ndarray:
@@ -318,35 +348,38 @@ class ForwardInversionStepper:
         """The voltage whose one-sample prediction is nearest r_mm, by the series along the
         line (method="auto"), or None where its truncation bound exceeds
         SERIES_TOLERANCE_MM."""
-        reg, g = self._m.regressor_, self._gamma
-        ch0 = np.concatenate((self._zeros_raw, self._a * self._mem))   # channels at u = 0
-        z0 = (ch0 - self._u_mean) / self._u_scale
-        # beta_j = alpha_j exp(-gamma ||z0 - c_j||^2), in place (this is the hot loop).
-        beta = self._C2g @ z0
-        beta += self._neg_g_csq
-        beta -= g * float(z0 @ z0)
-        np.exp(beta, out=beta)
-        beta *= reg.coef_
-        B = float(self._w @ z0) - self._Cw                           # w.(z0 - c_j)   (M,)
-        # Remainder of exp(x) after K terms, |x| <= x_max: x_max^K / K! * exp(x_max); the
-        # fewest terms that meet the tolerance.
-        x_max = self._x_per_B * max(float(B.max()), -float(B.min()))
-        scale = float(np.abs(beta).sum()) * math.exp(x_max) * abs(self._m.y_scale_)
+        reg, g, U = self._m.regressor_, self._gamma, self._ff.u_limit_v
+        z0 = self._z_rest.copy()                                     # the row at u = 0
+        z0[self._raw:] += self._z_mem * self._mem
+        za = self._z_aug
+        za[:z0.size] = z0
+        za[-1] = -g * float(z0 @ z0)
+        E = self._exponent @ za                # -gamma ||z0 - c_j||^2 (this is the hot loop)
+        np.exp(E, out=E)
+        moments = self._PTc @ E
+        s = float(self._w @ z0) - self._c_mid
+        # The prefactor exp(-gamma W u^2 - 2 gamma s u) peaks at u = -s / W (within +-U).
+        u_peak = min(U, max(-U, -s / self._W))
+        log_e_max = -g * u_peak * (self._W * u_peak + 2.0 * s)
+        if log_e_max > 600.0:   # a row far outside the centres: no series worth its terms
+            return None
+        e_max = math.exp(log_e_max)
+        scale = float(moments[-1]) * e_max * abs(self._m.y_scale_)
+        # The fewest terms that meet the tolerance.
         for K in range(4, SERIES_TERMS + 1):
-            bound = scale * x_max ** K / (self._k_fact[K - 1] * K)
+            bound = scale * self._remainder[K - 1]
             if bound <= SERIES_TOLERANCE_MM:
                 break
         else:
             return None
-        powers = np.empty((K, B.size))                               # B^0 .. B^(K-1)
-        powers[0] = 1.0
-        for k in range(1, K):
-            np.multiply(powers[k - 1], B, out=powers[k])
-        moments = powers @ beta                                      # (K,)
+        moments = moments[:K]
+        pred = moments @ self._GT[:K]
+        e = self._prefactor @ (s, 1.0)
+        np.exp(e, out=e)
+        pred *= e
         # Prediction - target on the grid, in the model's scaled units (y_scale_ per mm).
-        err = moments @ self._GT[:K]
-        err -= (r_mm - self._m.y_mean_) / self._m.y_scale_ - reg.intercept_
-        J = err * err
+        pred -= (r_mm - self._m.y_mean_) / self._m.y_scale_ - reg.intercept_
+        J = pred * pred
         u_g = self._fine_u
         if self._ff.smoothness_mm2_per_v2:
             weight = self._ff.smoothness_mm2_per_v2 / self._m.y_scale_ ** 2   # scaled units
@@ -357,19 +390,21 @@ class ForwardInversionStepper:
             curv = J[i - 1] - 2.0 * J[i] + J[i + 1]
             if curv > 0.0:
                 u += 0.5 * (J[i - 1] - J[i + 1]) / curv * (u_g[1] - u_g[0])
-        u = min(self._ff.u_limit_v, max(-self._ff.u_limit_v, u))
-        self._moments = moments.tolist()
+        u = min(U, max(-U, u))
+        # Horner coefficients of the inner series in u, highest power first.
+        coefs = moments * self._coef_scale[:K]
+        self._moments = coefs[::-1].tolist()
+        self._s = s
         self.series_error_bound_mm = max(self.series_error_bound_mm, bound)
         return u
 
     def _series_at(self, u: float) -> float:
         """The scaled one-sample prediction at voltage u (|u| <= u_limit_v) by the last series."""
-        g = self._gamma
-        x, s, term = -2.0 * g * u, 0.0, 1.0
-        for k, mk in enumerate(self._moments):
-            s += mk * term
-            term *= x / (k + 1)
-        return self._m.regressor_.intercept_ + math.exp(-g * self._W * u * u) * s
+        inner = 0.0
+        for c in self._moments:
+            inner = inner * u + c
+        prefactor = math.exp(-self._gamma * u * (self._W * u + 2.0 * self._s))
+        return self._m.regressor_.intercept_ + prefactor * inner
 
     def _cost(self, u: np.ndarray, target: np.ndarray) -> np.ndarray:
         err = self._simulate(u) - target
@@ -380,17 +415,16 @@ class ForwardInversionStepper:
     def step(self, r_mm: float) -> float:
         """Desired displacement r_k (mm) -> feedforward voltage u_k (V), within the limit."""
         r = float(r_mm)
-        if not np.isfinite(r):
+        if not math.isfinite(r):
             raise ValueError(f"r_mm must be a finite displacement (mm), got {r_mm!r}")
         slope = 0.0 if self._r_prev is None else r - self._r_prev
         self._r_prev = r
-        target = r + slope * self._j
         self._moments = None
         u = self._series_minimise(r) if self._series else None
         if u is not None:
             self.series_steps += 1
         else:
-            u = self._grid_minimise(target)
+            u = self._grid_minimise(r + slope * self._j)
         u = min(self._ff.u_limit_v, max(-self._ff.u_limit_v, u))
         self._saved = (self._ub.copy(), self._yb.copy(), self._mem.copy(), self._u_prev)
         self._advance(u, None if self._moments is None else self._series_at(u))
@@ -415,8 +449,9 @@ class ForwardInversionStepper:
         """Advance the model one sample with voltage u (V); ``zk``: its scaled prediction if
         known (the series'), else computed here."""
         if self._a.size:
-            self._mem = self._a * self._mem + (1.0 - self._a) * u
-        self._ub[1:] = self._ub[:-1]
+            self._mem = self._a * self._mem + self._one_minus_a * u
+        if self._depth_u > 1:
+            self._ub[1:] = self._ub[:-1]
         if self._raw:
             self._ub[0, 0] = u
         self._ub[0, self._raw:] = self._mem
@@ -425,7 +460,8 @@ class ForwardInversionStepper:
             row = self._rows(self._ub[None], yb, 0)
             zk = (self._m.regressor_.predict_one(row[0]) if self._kernel
                   else float(self._f(row)[0]))
-        self._yb[1:] = self._yb[:-1]
+        if self._depth_y > 1:
+            self._yb[1:] = self._yb[:-1]
         self._yb[0] = zk
         self._u_prev = u
         self.predicted_mm = zk * self._m.y_scale_ + self._m.y_mean_
