@@ -12,29 +12,31 @@ Procedure (:func:`diagnose`):
    with the input (95 % bounds), Welch spectrum, Ljung-Box.
 4. Greedy search: every candidate effect (:data:`~ipmc_model.effects.EFFECT_NAMES`) is fitted
    on the fit part on top of the current model. It is accepted only if
-   (a) *evidence*: the held-out free-run residual of the current model is significantly
-   and positively correlated (Bartlett bound, 95 %) with the effect's signature, i.e. what the
-   fitted effect changes in the prediction on the held-out input: for delay, dead zone,
-   asymmetry and saturation the effect alone around the current baseline (not refitted,
-   :data:`BARE_SIGNATURE`); for creep, drift and rate dependence the refitted model's change;
-   for delay, refit-free: the linear ARX dead-time scan
-   (:func:`~ipmc_model.effects.dead_time_test`, F test p < :data:`REFIT_FREE_ALPHA`); for
-   creep, in addition, drift in time: during input holds the residual keeps drifting as the
-   fitted creep predicts (:func:`~ipmc_model.residuals.hold_drift_test`, with the creep
-   predicted on each fit-part hold by the fit on the other holds; without holds creep is not
-   accepted, because path memory passes the signature test too; nor when the fitted tau is
-   the grid's longest, where only gain / tau is determined); and
-   (b) *improvement*: the held-out free-run RMSE falls by at least ``threshold`` (default
-   10 %) relative to the current model; for the effects whose fit refits the baseline NARX
-   (delay, dead zone, asymmetry, rate dependence, saturation) by at least the larger of
-   ``threshold`` and twice the *refit spread*, the relative RMSE change of the current model
-   merely refitted on other evenly spaced rows (80 % and 90 % of ``max_rows``): an
-   improvement a refit alone can give is no evidence of a missing effect. An effect with
-   refit-free evidence (delay) instead needs ``threshold`` with the budget and with each of the
-   other row budgets (:data:`ROW_SHARES`), paired: effect and current model refitted on the
-   same rows. A creep fitted on the hold drift (tau and gain not chosen by the RMSE) needs
-   the larger of ``CREEP_GAIN_SHARE`` x ``threshold`` (5 %) and twice the refit spread: the
-   plant's own creep at its true parameters gains 9.7 % on the demo's 300 s step record.
+   (a) *evidence*: the held-out free-run residual of the current model is significantly and
+   positively correlated (Bartlett bound, 95 %) with the effect's signature, i.e. what the fitted
+   effect changes in the prediction on the held-out input: for asymmetry and saturation the
+   effect alone around the current baseline (not refitted, :data:`BARE_SIGNATURE`);
+   for creep, drift and rate dependence the refitted model's change; for delay, refit-free: the
+   linear ARX dead-time scan (:func:`~ipmc_model.effects.dead_time_test`, F test p <
+   :data:`REFIT_FREE_ALPHA`); for dead zone, refit-free too: the Hammerstein ARX width scan with
+   smooth input and output nonlinearities as nuisance (:func:`~ipmc_model.effects.dead_zone_test`,
+   F test p < :data:`REFIT_FREE_ALPHA` after Bonferroni over the widths; it refuses inputs that are
+   mostly held levels); for creep, in addition, drift in time: during input holds the residual
+   keeps drifting as the fitted creep predicts (:func:`~ipmc_model.residuals.hold_drift_test`, with
+   the creep predicted on each fit-part hold by the fit on the other holds; without holds creep is
+   not accepted, because path memory passes the signature test too; nor when the fitted tau is the
+   grid's longest, where only gain / tau is determined); and
+   (b) *improvement*: the held-out free-run RMSE falls by at least ``threshold`` (default 10 %)
+   relative to the current model; for the effects whose fit refits the baseline NARX (delay, dead
+   zone, asymmetry, rate dependence, saturation) by at least the larger of ``threshold`` and twice
+   the *refit spread*, the relative RMSE change of the current model merely refitted on other
+   evenly spaced rows (80 % and 90 % of ``max_rows``): an improvement a refit alone can give is no
+   evidence of a missing effect. An effect with refit-free evidence (delay, dead zone) instead
+   needs ``threshold`` with the budget and with each of the other row budgets (:data:`ROW_SHARES`),
+   paired: effect and current model refitted on the same rows. A creep fitted on the hold drift
+   (tau and gain not chosen by the RMSE) needs the larger of ``CREEP_GAIN_SHARE`` x ``threshold``
+   (5 %) and twice the refit spread: the plant's own creep at its true parameters gains 9.7 % on
+   the demo's 300 s step record.
    The best accepted candidate is added, and the search repeats on the rest (at most
    ``max_effects`` effects). With no missing effect nothing passes.
 """
@@ -248,13 +250,23 @@ REFIT_FREE_ALPHA = 1e-3
 
 def _refit_free_test(name: str, t: dict) -> dict:
     """Evidence from a test on the fit data that does not refit the NARX (delay: the ARX
-    dead-time scan, :func:`~ipmc_model.effects.dead_time_test`), in the shape of
+    dead-time scan, :func:`~ipmc_model.effects.dead_time_test`; dead zone: the Hammerstein ARX
+    width scan, :func:`~ipmc_model.effects.dead_zone_test`), in the shape of
     :func:`~ipmc_model.residuals.correlation_test`'s result (``r`` is the RSS ratio - 1)."""
-    ok = bool(t["delay_samples"] >= 1 and not t["at_edge"] and t["p_value"] < REFIT_FREE_ALPHA)
-    text = (f"ARX one-step residual: response starts {t['delay_samples']} samples after the "
-            f"input (RSS at lag 0 / at the dead time {t['rss_ratio']:.3f}, F test p = "
-            f"{t['p_value']:.2g}, needs < {REFIT_FREE_ALPHA:g}"
-            f"{'; at the scan edge' if t['at_edge'] else ''})")
+    if name == "dead_zone":
+        ok = bool(t["width_v"] > 0 and not t["at_edge"] and t["p_value"] < REFIT_FREE_ALPHA)
+        text = (f"Hammerstein ARX one-step fit (smooth input and output nonlinearities as "
+                f"nuisance, {100 * t['moving_share']:.0f} % moving samples): dead zone "
+                f"{t['width_v']:.3g} V, RSS at w = 0 / at the width {t['rss_ratio']:.4f}, "
+                f"F test p = {t['p_value']:.2g} (Bonferroni over {t['widths_tested']} widths), "
+                f"needs < {REFIT_FREE_ALPHA:g}{'; at the scan edge' if t['at_edge'] else ''}")
+    else:
+        ok = bool(t["delay_samples"] >= 1 and not t["at_edge"]
+                  and t["p_value"] < REFIT_FREE_ALPHA)
+        text = (f"ARX one-step residual: response starts {t['delay_samples']} samples after "
+                f"the input (RSS at lag 0 / at the dead time {t['rss_ratio']:.3f}, F test p = "
+                f"{t['p_value']:.2g}, needs < {REFIT_FREE_ALPHA:g}"
+                f"{'; at the scan edge' if t['at_edge'] else ''})")
     return {"r": float(t["rss_ratio"] - 1.0), "bound": 0.0, "significant": ok,
             "ratio": float(t["rss_ratio"]), "text": text, "test": dict(t)}
 

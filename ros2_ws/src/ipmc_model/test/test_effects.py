@@ -7,12 +7,13 @@ import pytest
 from numpy.testing import assert_allclose
 
 from ipmc_driver.plant import IpmcPlant
-from ipmc_driver.signals import random_sine, random_steps
+from ipmc_driver.signals import mixed, random_sine, random_steps
 from ipmc_model.effects import (
     EFFECT_NAMES,
     AugmentedModel,
     Effect,
     dead_time_test,
+    dead_zone_test,
     fit_creep_on_holds,
     fit_effect,
     load_augmented,
@@ -278,3 +279,28 @@ def test_dead_time_test_finds_the_plant_delay(delay_s, seed):
         assert t["p_value"] < 1e-3 and not t["at_edge"]
     else:
         assert t["p_value"] == 1.0
+
+
+@pytest.mark.parametrize("seed", [6, 7])  # seeds 6, 7 and the 0.5 V width not used to design
+def test_dead_zone_test_finds_the_plant_width(seed):
+    # 120 s of `ipmc simulate --input mixed --amplitude 1.5` at 50 Hz, the fit part (70 %)
+    _, u = mixed(120.0, RATE, 1.5, band_hz=(0.02, 0.8), seed=seed)
+    cut = int(0.7 * u.size)
+    for fx, width in (({}, None), ({"saturation": {}}, None), ({"dead_zone": {}}, 0.3),
+                      ({"dead_zone": {"width_v": 0.5}}, 0.5)):
+        y = IpmcPlant(effects=fx, seed=seed, dt_s=1 / RATE).run(u).y_mm
+        t = dead_zone_test(u[:cut], y[:cut], 1 / RATE)
+        assert not t["refused"] and t["moving_share"] > 0.7
+        if width is None:  # the clean plant's own smooth nonlinearity is no dead zone
+            assert t["p_value"] > 1e-3, (fx, t)
+        else:
+            assert t["p_value"] < 1e-3 and not t["at_edge"], (fx, t)
+            assert t["width_v"] == pytest.approx(width, abs=0.04)
+
+
+def test_dead_zone_test_refuses_a_step_input():
+    # random steps visit a few dozen levels: a kink between them would always "fit"
+    _, u = random_steps(120.0, RATE, 1.5, seed=6)
+    y = IpmcPlant(effects={"dead_zone": {}}, seed=6, dt_s=1 / RATE).run(u).y_mm
+    t = dead_zone_test(u, y, 1 / RATE)
+    assert t["refused"] and t["moving_share"] < 0.5
