@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .metrics import score
-from .narx import PAPER_C, PAPER_SIGMA, InverseNarxModel, NarxModel, make_lssvm
+from .narx import PAPER_C, PAPER_SIGMA, InverseNarxModel, NarxModel
 from .persistence import load_model, save_model
 from .play import PrandtlIshlinskii
 from .tuning import (
@@ -194,8 +194,8 @@ def _identify_parser() -> argparse.ArgumentParser:
                         "these time constants (s, e.g. 0.3 0.5), built by the model from the "
                         "raw voltage and stored in its file; such a model can be inverted for "
                         "the feedforward (model_server, ipmc track). Input and output lags "
-                        f"default to {DEFAULT_CHANNEL_LAGS}; needs --tune none with --C and "
-                        "--sigma (e.g. --C 1e6 --sigma 1)")
+                        f"default to {DEFAULT_CHANNEL_LAGS}; C and sigma tuned by ABC, or "
+                        "--tune none with --C and --sigma (e.g. --C 1e6 --sigma 1)")
     p.add_argument("--no-raw-voltage", dest="raw_voltage", action="store_false",
                    help="with --input-memory-taus: the low-passed voltages only, not the "
                         "voltage itself (the structure that inverts smoothly)")
@@ -238,7 +238,7 @@ def identify_main(argv: list[str] | None = None) -> int:
             model = PrandtlIshlinskii(n_operators=args.operators, method=args.pi_method,
                                       seed=args.seed).fit(u, y)
         elif args.input_memory_taus is not None or not args.raw_voltage:
-            model = _identify_channel_model(args, u, y, 1.0 / float(rec.rate_hz))
+            model = _identify_channel_model(args, u, y, 1.0 / float(rec.rate_hz), meta)
         else:
             tune = args.tune == "abc"
             if args.memory_taus and not args.inverse:
@@ -282,7 +282,7 @@ def identify_main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _identify_channel_model(args, u, y, dt_s: float) -> NarxModel:
+def _identify_channel_model(args, u, y, dt_s: float, meta: dict) -> NarxModel:
     """The forward LSSVM-NARX with voltage channels of --input-memory-taus / --no-raw-voltage."""
     if args.input_memory_taus is None:
         raise ValueError("--no-raw-voltage needs --input-memory-taus (the low-passed voltage "
@@ -293,28 +293,38 @@ def _identify_channel_model(args, u, y, dt_s: float) -> NarxModel:
                          "channels are --memory-taus (the desired displacement low-passed)")
     if args.memory_taus:
         raise ValueError("--memory-taus is for an inverse model: add --inverse")
-    if args.tune != "none":
-        # tuning.tune_lssvm_narx builds plain NarxModels from a 1-D input: it cannot score
-        # candidates with voltage channels yet.
-        raise ValueError("--input-memory-taus needs --tune none with --C and --sigma (ABC "
-                         "tuning of models with voltage channels is not supported yet; the "
-                         "recipe in docs/control.md is --C 1e6 --sigma 1)")
+    tune = args.tune == "abc"
     lag_step = 1 if args.lag_step is None else args.lag_step
-    if not isinstance(lag_step, int):
+    if not tune and not isinstance(lag_step, int):
         raise ValueError("--lag-step 'auto' or a list needs tuning; give one integer")
     in_lags = DEFAULT_CHANNEL_LAGS if args.input_lags is None else args.input_lags
     out_lags = DEFAULT_CHANNEL_LAGS if args.output_lags is None else args.output_lags
-    n_rows = u.size if args.max_rows is None else min(u.size, int(args.max_rows))
-    reg = make_lssvm(args.C, args.sigma, n_samples=n_rows, max_exact=args.max_exact,
-                     n_prototypes=args.prototypes, seed=args.seed)
-    print(f"fitting a forward LSSVM-NARX on voltage channels (taus {', '.join(map(str, taus))}"
-          f" s{', and the voltage' if args.raw_voltage else ''}; input lags {in_lags}, output "
-          f"lags {out_lags}, C = {args.C:g}, sigma = {args.sigma:g})", file=sys.stderr,
-          flush=True)
-    model = NarxModel(reg, input_lags=in_lags, output_lags=out_lags, lag_step=lag_step,
-                      max_rows=args.max_rows, input_memory_taus_s=taus,
-                      include_voltage=args.raw_voltage, dt_s=dt_s)
-    return model.fit(u, y)
+    what = (f"a forward LSSVM-NARX on voltage channels (taus {', '.join(map(str, taus))} s"
+            f"{', and the voltage' if args.raw_voltage else ''}; input lags {in_lags}, output "
+            f"lags {out_lags}")
+    if tune:
+        print(f"tuning C, sigma of {what}) by ABC ({args.budget[0]} sources x "
+              f"{args.budget[1]} cycles, {args.objective} objective)", file=sys.stderr,
+              flush=True)
+    else:
+        print(f"fitting {what}, C = {args.C:g}, sigma = {args.sigma:g})", file=sys.stderr,
+              flush=True)
+    model, tuning = identify_lssvm_narx(
+        u, y,
+        C=None if tune else args.C, sigma=None if tune else args.sigma,
+        input_lags=in_lags, output_lags=out_lags, lag_step=lag_step, seed=args.seed,
+        dt_s=dt_s, input_memory_taus_s=taus, include_voltage=args.raw_voltage,
+        n_prototypes=args.prototypes, max_exact=args.max_exact, max_train_rows=args.max_rows,
+        **({"n_sources": args.budget[0], "n_cycles": args.budget[1],
+            "objective": args.objective.replace("-", "_"), "progress": _progress,
+            "n_folds": args.folds, "max_val_samples": MAX_VAL_SAMPLES} if tune else {}),
+    )
+    if tuning is not None:
+        meta["tuning"] = tuning.as_dict()
+        print(f"tuned: C = {tuning.C:.6g}, sigma = {tuning.sigma:.6g}, lag step "
+              f"{tuning.lag_step} (validation {args.objective} RMSE {tuning.score_mm:.4f}, "
+              f"{tuning.nfev} fits, {tuning.seconds:.1f} s)")
+    return model
 
 
 def _evaluate_parser() -> argparse.ArgumentParser:

@@ -39,7 +39,7 @@ from .lssvm import (
     LSSVMRegressor,
     select_prototypes,
 )
-from .narx import InverseNarxModel, NarxModel, make_lssvm, memory_channels
+from .narx import InverseNarxModel, NarxModel, make_lssvm, memory_channels, voltage_channels
 
 OBJECTIVES = ("free_run", "one_step")
 
@@ -186,6 +186,8 @@ def tune_lssvm_narx(
     inverse: bool = False,
     memory_taus_s=(),
     dt_s: float = 0.01,
+    input_memory_taus_s=(),
+    include_voltage: bool = True,
     objective: str = "free_run",
     val_fraction: float = 0.3,
     n_sources: int = DEFAULT_SOURCES,
@@ -209,7 +211,9 @@ def tune_lssvm_narx(
         Input (V) and output (mm), one uniformly sampled record.
     input_lags, output_lags : int
         NARX structure, as :class:`~ipmc_model.narx.NarxModel` (for ``inverse=True``, as
-        :class:`~ipmc_model.narx.InverseNarxModel`).
+        :class:`~ipmc_model.narx.InverseNarxModel`); ``input_memory_taus_s`` and
+    ``include_voltage`` give a forward model voltage channels (see
+    :class:`~ipmc_model.narx.NarxModel`).
     lag_step : int, sequence of int or "auto"
         Lag spacing in samples; a sequence (or ``"auto"`` = ``DEFAULT_LAG_STEPS``) runs one
         ABC per spacing and keeps the best (``TuningResult.lag_step``).
@@ -217,6 +221,10 @@ def tune_lssvm_narx(
         Tune the inverse model (scored on the voltage it predicts, V).
     memory_taus_s : sequence of float, dt_s : float
         Memory channels of the inverse model (time constants and sample period, s).
+    input_memory_taus_s : sequence of float, include_voltage : bool
+        Voltage channels of a forward model (s; see :class:`~ipmc_model.narx.NarxModel`). The
+        channels are built once from the whole record, so each validation slice starts from
+        the low-pass filters' true state, as the final model's own free run does.
     objective : {"free_run", "one_step"}
         Validation RMSE of the free-run simulation (default) or of the one-step prediction.
     val_fraction : float
@@ -267,16 +275,26 @@ def tune_lssvm_narx(
         blocks = [(int(lo), int(min(hi, lo + max_val_samples)))
                   for lo, hi in zip(edges[:-1], edges[1:], strict=True)]
     score = _OBJECTIVE_FUNCS[objective]
+    channels = len(input_memory_taus_s) > 0 or not include_voltage
+    if channels and inverse:
+        raise ValueError("input_memory_taus_s / include_voltage are for a forward model; an "
+                         "inverse model's channels are memory_taus_s")
     # the inverse model maps y -> u: it is scored on the voltage it predicts
     memory = {"memory_taus_s": tuple(memory_taus_s), "dt_s": dt_s}
-    x_all, t_all = (memory_channels(y, memory_taus_s, dt_s), u) if inverse else (u, y)
+    if inverse:
+        x_all, t_all = memory_channels(y, memory_taus_s, dt_s), u
+    elif channels:  # the same rows as the final model with voltage channels builds
+        x_all, t_all = voltage_channels(u, tuple(input_memory_taus_s), dt_s,
+                                        include_voltage=include_voltage), y
+    else:
+        x_all, t_all = u, y
 
     def skeleton(reg, step):
         if inverse:
             return InverseNarxModel(reg, output_lags=output_lags, input_lags=input_lags,
                                     lag_step=step, **memory).fit(u, y).narx_
         return NarxModel(reg, input_lags=input_lags, output_lags=output_lags,
-                         lag_step=step).fit(u, y)
+                         lag_step=step).fit(x_all, y)
 
     res_step = float(log10_sigma_resolution)
 
@@ -355,6 +373,8 @@ def identify_lssvm_narx(
     inverse: bool = False,
     memory_taus_s=(),
     dt_s: float = 0.01,
+    input_memory_taus_s=(),
+    include_voltage: bool = True,
     max_exact: int = DEFAULT_MAX_EXACT,
     n_prototypes: int = 1000,
     seed: int | None = 0,
@@ -381,7 +401,9 @@ def identify_lssvm_narx(
         tuning = tune_lssvm_narx(u, y, input_lags=input_lags, output_lags=output_lags,
                                  lag_step=lag_step, inverse=inverse, seed=seed,
                                  memory_taus_s=memory_taus_s, dt_s=dt_s,
-                                 max_exact=max_exact, n_prototypes=n_prototypes, **tune_kwargs)
+                                 input_memory_taus_s=input_memory_taus_s,
+                                 include_voltage=include_voltage, max_exact=max_exact,
+                                 n_prototypes=n_prototypes, **tune_kwargs)
         C, sigma, lag_step = tuning.C, tuning.sigma, tuning.lag_step
     else:
         steps = _lag_steps(lag_step)
@@ -399,5 +421,7 @@ def identify_lssvm_narx(
                                  memory_taus_s=memory_taus_s, dt_s=dt_s).fit(u, y)
     else:
         model = NarxModel(reg, input_lags=input_lags, output_lags=output_lags,
-                          lag_step=lag_step, max_rows=max_rows).fit(u, y)
+                          lag_step=lag_step, max_rows=max_rows,
+                          input_memory_taus_s=tuple(input_memory_taus_s),
+                          include_voltage=include_voltage, dt_s=dt_s).fit(u, y)
     return model, tuning

@@ -187,19 +187,31 @@ def test_identify_builds_a_forward_model_with_voltage_channels(tmp_path, csvs, c
 @pytest.mark.parametrize("extra, message", [
     (["--no-raw-voltage"], "--no-raw-voltage needs --input-memory-taus"),
     (["--input-memory-taus", "0.3", "--inverse"], "is for a forward model"),
-    (["--input-memory-taus", "0.3", "--tune", "abc"], "needs --tune none"),
 ])
 def test_identify_refuses_bad_voltage_channel_options(tmp_path, csvs, capsys, extra, message):
     train, _ = csvs
     argv = ["--data", str(train), "--model", "lssvm-narx", "--tune", "none", "--C", "10",
             "--sigma", "2", "--out", str(tmp_path / "x.json")]
-    if "abc" in extra:
-        argv.remove("none")
-        argv.remove("--tune")
     rc = identify_main(argv + extra)
     assert rc == 1
     err = capsys.readouterr().err.strip()
     assert err.startswith("ipmc identify: error:") and message in err and "\n" not in err
+
+
+def test_identify_tunes_a_forward_model_with_voltage_channels(tmp_path, csvs, capsys):
+    train, _ = csvs
+    out = tmp_path / "fwd.json"
+    rc = identify_main(["--data", str(train), "--model", "lssvm-narx", "--tune", "abc",
+                        "--budget", "3x2", "--folds", "1", "--input-memory-taus", "0.3", "0.5",
+                        "--no-raw-voltage", "--out", str(out)])
+    assert rc == 0
+    out_text, err = capsys.readouterr()
+    assert "ABC cycle 2/2" in err and "tuned: C = " in out_text
+    m = load_model(out)
+    doc = json.loads(out.read_text())
+    assert m.uses_voltage_channels and m.n_inputs_ == 2 and m.output_lags == 0
+    assert m.regressor_.C == pytest.approx(doc["metadata"]["tuning"]["C"])
+    assert m.regressor_.sigma == pytest.approx(doc["metadata"]["tuning"]["sigma"])
 
 
 def test_identify_refuses_nonpositive_input_memory_taus(tmp_path, csvs, capsys):
