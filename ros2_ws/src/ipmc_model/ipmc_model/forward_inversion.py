@@ -301,7 +301,7 @@ class ForwardInversionStepper:
             self._z_mem = self._a / self._u_scale[self._raw:]
             self._z_rest = -self._u_mean / self._u_scale
         # The last step's series (its Horner coefficients in u, and s), while its state holds.
-        self._moments: list | None = None
+        self._series_coefs: list | None = None
         self._s = 0.0
 
     # -- the model -----------------------------------------------------------------------------
@@ -393,7 +393,7 @@ class ForwardInversionStepper:
         u = min(U, max(-U, u))
         # Horner coefficients of the inner series in u, highest power first.
         coefs = moments * self._coef_scale[:K]
-        self._moments = coefs[::-1].tolist()
+        self._series_coefs = coefs[::-1].tolist()
         self._s = s
         self.series_error_bound_mm = max(self.series_error_bound_mm, bound)
         return u
@@ -401,7 +401,7 @@ class ForwardInversionStepper:
     def _series_at(self, u: float) -> float:
         """The scaled one-sample prediction at voltage u (|u| <= u_limit_v) by the last series."""
         inner = 0.0
-        for c in self._moments:
+        for c in self._series_coefs:
             inner = inner * u + c
         prefactor = math.exp(-self._gamma * u * (self._W * u + 2.0 * self._s))
         return self._m.regressor_.intercept_ + prefactor * inner
@@ -419,7 +419,7 @@ class ForwardInversionStepper:
             raise ValueError(f"r_mm must be a finite displacement (mm), got {r_mm!r}")
         slope = 0.0 if self._r_prev is None else r - self._r_prev
         self._r_prev = r
-        self._moments = None
+        self._series_coefs = None
         u = self._series_minimise(r) if self._series else None
         if u is not None:
             self.series_steps += 1
@@ -427,7 +427,7 @@ class ForwardInversionStepper:
             u = self._grid_minimise(r + slope * self._j)
         u = min(self._ff.u_limit_v, max(-self._ff.u_limit_v, u))
         self._saved = (self._ub.copy(), self._yb.copy(), self._mem.copy(), self._u_prev)
-        self._advance(u, None if self._moments is None else self._series_at(u))
+        self._advance(u, None if self._series_coefs is None else self._series_at(u))
         return u
 
     def _grid_minimise(self, target: np.ndarray) -> float:
@@ -478,5 +478,5 @@ class ForwardInversionStepper:
         ub, yb, mem, u_prev = self._saved
         self._ub[:], self._yb[:], self._mem, self._u_prev = ub, yb, mem.copy(), u_prev
         # From the same state the last step's series holds for any voltage in the range.
-        series = self._moments is not None and abs(u) <= self._ff.u_limit_v
+        series = self._series_coefs is not None and abs(u) <= self._ff.u_limit_v
         self._advance(u, self._series_at(u) if series else None)
