@@ -92,7 +92,8 @@ BASELINE_INPUT_LAGS = 12
 #: correlated with the residual at r = 0.4-0.8), so only the effect's own change counts. Creep,
 #: drift and rate dependence keep the refitted signature: the baseline fitted on data with a
 #: creep has absorbed its fast part, so the bare creep term is not what is missing.
-BARE_SIGNATURE = ("delay", "dead_zone", "asymmetry", "saturation")
+# (delay and dead zone bring refit-free evidence instead, _refit_free_test.)
+BARE_SIGNATURE = ("asymmetry", "saturation")
 BASELINE_OUTPUT_LAGS = 0
 #: Row budgets (shares of ``max_rows``) of the paired refits: an effect whose fit refits the
 #: NARX must gain ``threshold`` with each of them too, against the current model refitted on

@@ -1028,10 +1028,8 @@ def dead_zone_test(u, y, dt_s: float, *, output_lags: int = 4, input_lags: int =
 
 
 def _grid(name, u, y, dt, rate_tau_max_s=np.inf):
-    umax = float(np.max(np.abs(u)))
+    # delay and dead_zone are not here: their value comes from an ARX scan (fit_effect)
     ymax = float(np.max(np.abs(y)))
-    if name == "dead_zone":
-        return [{"width_v": f * umax} for f in (0.02, 0.04, 0.07, 0.1, 0.14, 0.2, 0.3)]
     if name == "asymmetry":
         return [{"negative_gain_ratio": r} for r in (0.5, 0.67, 0.8, 1.25, 1.5, 2.0)]
     if name == "saturation":
