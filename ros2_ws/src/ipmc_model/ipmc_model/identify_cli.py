@@ -259,17 +259,9 @@ def identify_main(argv: list[str] | None = None) -> int:
                 lag_step=args.lag_step, inverse=args.inverse, seed=args.seed,
                 memory_taus_s=args.memory_taus, dt_s=1.0 / float(rec.rate_hz),
                 n_prototypes=args.prototypes, max_exact=args.max_exact,
-                max_train_rows=args.max_rows,
-                **({"n_sources": args.budget[0], "n_cycles": args.budget[1],
-                    "objective": args.objective.replace("-", "_"), "progress": _progress,
-                    "n_folds": args.folds, "max_val_samples": MAX_VAL_SAMPLES}
-                   if tune else {}),
+                max_train_rows=args.max_rows, **_tuning_kwargs(args, tune),
             )
-            if tuning is not None:
-                meta["tuning"] = tuning.as_dict()
-                print(f"tuned: C = {tuning.C:.6g}, sigma = {tuning.sigma:.6g}, lag step "
-                      f"{tuning.lag_step} (validation {args.objective} RMSE "
-                      f"{tuning.score_mm:.4f}, {tuning.nfev} fits, {tuning.seconds:.1f} s)")
+            _report_tuning(args, tuning, meta)
         result = evaluate_model(model, u, y)
         meta["training_metrics"] = {k: result[k] for k in ("free_run", "one_step", "units",
                                                            "samples_skipped")}
@@ -315,16 +307,29 @@ def _identify_channel_model(args, u, y, dt_s: float, meta: dict) -> NarxModel:
         input_lags=in_lags, output_lags=out_lags, lag_step=lag_step, seed=args.seed,
         dt_s=dt_s, input_memory_taus_s=taus, include_voltage=args.raw_voltage,
         n_prototypes=args.prototypes, max_exact=args.max_exact, max_train_rows=args.max_rows,
-        **({"n_sources": args.budget[0], "n_cycles": args.budget[1],
-            "objective": args.objective.replace("-", "_"), "progress": _progress,
-            "n_folds": args.folds, "max_val_samples": MAX_VAL_SAMPLES} if tune else {}),
+        **_tuning_kwargs(args, tune),
     )
-    if tuning is not None:
-        meta["tuning"] = tuning.as_dict()
-        print(f"tuned: C = {tuning.C:.6g}, sigma = {tuning.sigma:.6g}, lag step "
-              f"{tuning.lag_step} (validation {args.objective} RMSE {tuning.score_mm:.4f}, "
-              f"{tuning.nfev} fits, {tuning.seconds:.1f} s)")
+    _report_tuning(args, tuning, meta)
     return model
+
+
+def _tuning_kwargs(args, tune: bool) -> dict:
+    """identify_lssvm_narx's ABC options from the command line (none without tuning)."""
+    if not tune:
+        return {}
+    return {"n_sources": args.budget[0], "n_cycles": args.budget[1],
+            "objective": args.objective.replace("-", "_"), "progress": _progress,
+            "n_folds": args.folds, "max_val_samples": MAX_VAL_SAMPLES}
+
+
+def _report_tuning(args, tuning, meta: dict) -> None:
+    """Print the tuned values and keep them in the model file's metadata."""
+    if tuning is None:
+        return
+    meta["tuning"] = tuning.as_dict()
+    print(f"tuned: C = {tuning.C:.6g}, sigma = {tuning.sigma:.6g}, lag step "
+          f"{tuning.lag_step} (validation {args.objective} RMSE {tuning.score_mm:.4f}, "
+          f"{tuning.nfev} fits, {tuning.seconds:.1f} s)")
 
 
 def _evaluate_parser() -> argparse.ArgumentParser:
