@@ -21,7 +21,10 @@ def _parser() -> argparse.ArgumentParser:
         description="Fit a baseline model, analyse its held-out residual, add the physical "
                     "effect it lacks (creep, drift, delay, ...), report before/after.")
     p.add_argument("--data", required=True, help="t,u,y CSV file (s, V, mm) or rosbag2 folder")
-    p.add_argument("--model", help="baseline model file (lssvm-narx, from ipmc identify); "
+    p.add_argument("--model", help="baseline model file (lssvm-narx from ipmc identify, or a "
+                                   "diagnosis's model_before/after), e.g. fitted on another "
+                                   "day: kept as it is, and drift, delay, dead zone, asymmetry "
+                                   "and saturation are fitted around it (what changed since); "
                                    "default: identify one on the first 70 %% of the data")
     p.add_argument("--report", required=True, metavar="DIR", help="output directory")
     p.add_argument("--seed", type=int, default=0, help="seed of tuning and prototypes")

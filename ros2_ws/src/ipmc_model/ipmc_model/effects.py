@@ -37,6 +37,10 @@ through the effect (input transformed; saturation: output through artanh) for ea
 one-dimensional parameter grid, scored by free-run RMSE on an internal validation slice (the
 last quarter) of the fit data.
 
+Around a model kept as it is (a model fitted on other data, given to the diagnosis),
+:func:`fit_frozen_effect` fits drift, delay, dead zone, asymmetry or saturation as a block
+without refitting anything: the block is what changed since the model was fitted.
+
 Inversion (feedforward control): :meth:`AugmentedModel.inverse_stepper` wraps an inverse NARX
 fitted in the baseline's space (:meth:`AugmentedModel.fit_inverse`). For creep, at each step
 the creep state c_k (known from the voltages already applied) is subtracted from the desired
@@ -55,6 +59,7 @@ from collections import deque
 from pathlib import Path
 
 import numpy as np
+from scipy.optimize import minimize_scalar
 from scipy.signal import lfilter
 
 from ipmc_driver.validation import as_signal, same_length
@@ -69,6 +74,11 @@ OUTPUT_EFFECTS = ("creep", "drift", "saturation")
 INPUT_EFFECTS = ("delay", "dead_zone", "asymmetry", "rate_dependence")
 #: Effects whose fit refits the baseline NARX (the others keep it fixed).
 REFIT_EFFECTS = ("delay", "dead_zone", "asymmetry", "rate_dependence", "saturation")
+#: Static blocks that can also be fitted around a model kept as it is (a model given to the
+#: diagnosis, fitted on other data): :func:`fit_frozen_effect`.
+FROZEN_EFFECTS = ("drift", "delay", "dead_zone", "asymmetry", "saturation")
+#: Points of the frozen fits' parameter grids (then refined between the best one's neighbours).
+FROZEN_GRID_POINTS = 25
 
 #: Units of each effect parameter (for reports).
 PARAM_UNITS = {
@@ -1037,6 +1047,98 @@ def _grid(name, u, y, dt, rate_tau_max_s=np.inf):
     if name == "rate_dependence":
         return [{"tau_s": ts} for ts in (2 * dt, 0.05, 0.2, 1.0) if ts <= rate_tau_max_s]
     raise ValueError(name)
+
+
+def _frozen_grid(name: str, u, y, dt_s: float) -> list[float]:
+    """Parameter values of a frozen fit (the block's one parameter, physical units)."""
+    n = FROZEN_GRID_POINTS
+    if name == "delay":  # whole samples up to 0.5 s, at most n of them
+        d = np.unique(np.round(np.geomspace(1, max(1.0, 0.5 / dt_s), n)))
+        return list(d * dt_s)
+    if name == "dead_zone":
+        return list(np.linspace(0.0, 0.5 * np.max(np.abs(u)), n + 1)[1:])
+    if name == "asymmetry":
+        r = np.geomspace(0.5, 2.0, n)
+        return list(r[np.abs(np.log(r)) > 1e-3])
+    # saturation: from a limit the record's largest displacement nearly reaches, to one that
+    # hardly bends it (3 x: tanh(1/3) is 3.6 % below linear)
+    return list(np.max(np.abs(y)) * np.geomspace(0.8, 3.0, n))
+
+
+def fit_frozen_effect(name: str, model: AugmentedModel, u, y) -> tuple[AugmentedModel, Effect]:
+    """Fit the block ``name`` around ``model`` kept as it is (nothing refitted).
+
+    For a model fitted on other data (a model given to the diagnosis: yesterday's rig, before
+    the electrode wore), the block is what changed since. A baseline fitted on this record
+    has already absorbed a static input or output map (a nonlinear FIR represents
+    dead_zone(u) or tanh(z) through its own inputs), so this fit is for given models.
+
+    Drift (gain loss and offset per minute) is linear around a fixed model: least squares on
+    the free-run residual, with a constant gain and offset as nuisance terms (kept out of the
+    block: only the change in time is drift). The other blocks' one parameter (delay in whole
+    samples up to 0.5 s, dead-zone width up to half of max |u|, negative-gain ratio 0.5-2,
+    saturation limit 0.8-3 x max |y|) minimises the free-run RMSE of the augmented model on (u, y) (the fit part only)
+    over a grid of :data:`FROZEN_GRID_POINTS` values, refined between the best value's
+    neighbours (bounded Brent; not for the delay, which is in samples).
+
+    Returns
+    -------
+    (AugmentedModel, Effect)
+        The model with the effect appended (same baseline object), and the effect, whose
+        ``frozen_`` attribute holds the fit (``{"fit_rmse_mm", "fit_rmse_before_mm"}``).
+    """
+    if name not in FROZEN_EFFECTS:
+        raise ValueError(f"{name!r} cannot be fitted around a frozen model; frozen fits: "
+                         f"{', '.join(FROZEN_EFFECTS)}")
+    if name in model.effect_names:
+        raise ValueError(f"the model already has the {name} effect")
+    u = as_signal("u", u)
+    y = as_signal("y", y)
+    same_length(u=u, y=y)
+    rmse_model = _free_run_rmse(model, u, y)
+    if name == "drift":
+        # linear in its two parameters around a fixed model: least squares, no grid. A constant
+        # gain and offset (z, 1) are nuisance terms, as in the backfit: a model from another
+        # day can be off by a constant factor (a dead zone lowers the gain), which is no drift
+        # in time (a stale model on a dead-zone record: drift +42 % held out without them).
+        L = model.max_lag_
+        z = model.simulate(u, y[:L])
+        m = np.arange(u.size) * model.dt_s / 60.0
+        X = np.column_stack([-m * z, m, z, np.ones_like(z)])[L:]
+        coef = np.linalg.lstsq(X, (y - z)[L:], rcond=None)[0]
+        eff = Effect("drift", gain_loss_per_min=coef[0], offset_mm_per_min=coef[1])
+        out = AugmentedModel(model.baseline, model.effects + [eff], model.dt_s)
+        eff.frozen_ = {"fit_rmse_mm": _free_run_rmse(out, u, y),
+                       "fit_rmse_before_mm": rmse_model, "at_edge": False}
+        return out, eff
+    key = Effect._KEYS[name][0]
+
+    def score(value: float) -> float:
+        m = AugmentedModel(model.baseline, model.effects + [Effect(name, **{key: value})],
+                           model.dt_s)
+        with np.errstate(all="ignore"):
+            return _free_run_rmse(m, u, y)
+
+    grid = _frozen_grid(name, u, y, model.dt_s)
+    scores = [score(v) for v in grid]
+    i = int(np.argmin(scores))
+    best, best_score = float(grid[i]), float(scores[i])
+    if not best_score < rmse_model:
+        raise ValueError(f"no {name}: the model as given fits the fit part best without it "
+                         f"(free-run RMSE {rmse_model:.4g} mm; best {name} "
+                         f"{best:.4g} {PARAM_UNITS[key]}: {best_score:.4g} mm)")
+    if name != "delay" and len(grid) > 2:
+        lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+        res = minimize_scalar(score, bounds=(lo, hi), method="bounded",
+                              options={"xatol": 1e-3 * (hi - lo)})
+        if res.success and res.fun < best_score:
+            best, best_score = float(res.x), float(res.fun)
+    if not np.isfinite(best_score):
+        raise ValueError(f"no {name} parameter gives a finite free run on this record")
+    eff = Effect(name, **{key: best})
+    eff.frozen_ = {"fit_rmse_mm": best_score, "fit_rmse_before_mm": rmse_model,
+                   "at_edge": bool(i in (0, len(grid) - 1))}
+    return AugmentedModel(model.baseline, model.effects + [eff], model.dt_s), eff
 
 
 def fit_effect(name: str, model: AugmentedModel, narx: NarxModel, u, y, *,

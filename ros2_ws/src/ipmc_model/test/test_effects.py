@@ -16,6 +16,7 @@ from ipmc_model.effects import (
     dead_zone_test,
     fit_creep_on_holds,
     fit_effect,
+    fit_frozen_effect,
     load_augmented,
     mask_model_settling,
     save_augmented,
@@ -261,6 +262,34 @@ def test_every_candidate_fits(record, base):
         m, eff = fit_effect(name, base, _narx(), u, y, screen_narx=_narx(200))
         assert m.effect_names == [name] and eff.name == name
         assert np.all(np.isfinite(m.simulate(u[:200])))
+
+
+@pytest.mark.parametrize("name, params", [
+    ("dead_zone", {"width_v": 0.35}), ("saturation", {"limit_mm": 1.2}),
+    ("asymmetry", {"negative_gain_ratio": 0.7}), ("delay", {"delay_s": 0.1}),
+    ("drift", {"gain_loss_per_min": 0.2, "offset_mm_per_min": -0.3}),
+])
+def test_frozen_fit_recovers_the_block_around_a_fixed_model(record, base, name, params):
+    # data = the fixed model seen through the block (+ laser-like noise): the fit must find
+    # the block and leave the model's baseline untouched
+    u, _ = record
+    truth = AugmentedModel(base.baseline, [Effect(name, **params)], base.dt_s)
+    y = truth.simulate(u) + 0.005 * np.random.default_rng(0).standard_normal(u.size)
+    m, eff = fit_frozen_effect(name, base, u, y)
+    assert m.baseline is base.baseline and m.effect_names == [name]
+    for k, v in params.items():
+        assert eff.params[k] == pytest.approx(v, rel=0.05)
+    assert eff.frozen_["fit_rmse_mm"] < 0.02 < eff.frozen_["fit_rmse_before_mm"]
+
+
+def test_frozen_fit_refuses_a_block_the_data_do_not_need(record, base):
+    u, _ = record
+    y = base.simulate(u) + 0.005 * np.random.default_rng(1).standard_normal(u.size)
+    for name in ("dead_zone", "saturation", "asymmetry", "delay"):
+        with pytest.raises(ValueError, match="best without it"):
+            fit_frozen_effect(name, base, u, y)
+    with pytest.raises(ValueError, match="cannot be fitted around a frozen model"):
+        fit_frozen_effect("creep", base, u, y)
 
 
 @pytest.mark.parametrize("delay_s, seed", [(None, 0), (None, 3), (0.05, 0), (0.1, 3), (0.2, 5)])
