@@ -3,6 +3,12 @@ third-party data (Bouc-Wen, piezo). Prints figures; not part of the pass/fail su
 
     .venv/bin/python benchmarks/bench_diagnose.py [timing|effects [LABEL_PREFIX...]|thirdparty|all]
     .venv/bin/python benchmarks/bench_diagnose.py creepfit [SEED...]
+    .venv/bin/python benchmarks/bench_diagnose.py stale [SEED...]
+
+``stale``: a model fitted on a clean day (the diagnosis's own baseline on 120 s of the mixed
+3 V input) given with ``--model`` to the record of a later day (seed + 100) on which the plant
+has a dead zone, a saturation or a drift (or nothing): what changed since, fitted around the
+model (seeds 0, 1 by default; they were used to design it).
 
 ``creepfit``: the creep candidate alone (``diagnose(candidates=("creep",))``, full tuning) on
 ``creep_hold_experiment``'s kind of record (300 s of random 2.5 V steps held 0.5-5 s, 100 Hz),
@@ -46,9 +52,10 @@ def plant_record(effects, seconds, seed, rate=RATE, holds=False):
     return Record(run.t_s, u, run.y_mm)
 
 
-def run_cli(csv_path, out):
+def run_cli(csv_path, out, model=None):
     t0 = time.perf_counter()
-    code = diagnose_main(["--data", str(csv_path), "--report", str(out), "--seed", "0"])
+    code = diagnose_main(["--data", str(csv_path), "--report", str(out), "--seed", "0"]
+                         + (["--model", str(model)] if model else []))
     import json
 
     s = json.loads((Path(out) / "summary.json").read_text()) if code == 0 else {}
@@ -137,6 +144,40 @@ def creepfit(seeds=(0, 1, 3)):
                   f"{'yes' if c.accepted else 'no'} |", flush=True)
 
 
+STALE_CHANGES = (
+    ("none", {}),
+    ("dead zone 0.3 V", {"dead_zone": {"width_v": 0.3}}),
+    ("dead zone 0.45 V", {"dead_zone": {"width_v": 0.45}}),
+    ("saturation 3 mm", {"saturation": {"limit_mm": 3.0}}),
+    ("saturation 2.5 mm", {"saturation": {"limit_mm": 2.5}}),
+    ("drift 0.1 /min, 0.3 mm/min", {"drift": {"gain_loss_per_min": 0.1,
+                                              "offset_mm_per_min": 0.3}}),
+)
+
+
+def stale(tmp, seeds=(0, 1), amplitude=3.0):
+    """A model from a clean day, given with --model, on a later day's record with a change."""
+    from ipmc_driver.signals import mixed
+
+    print(f"mixed input {amplitude} V, 120 s at 50 Hz; day 1 clean (seed S), day 2 seed S + 100")
+    print("| day 2 plant | seed | found | fitted | held-out RMSE before -> after (mm) | wall |")
+    print("|---|---|---|---|---|---|")
+    for seed in seeds:
+        def record(fx, sd):
+            _, u = mixed(120.0, RATE, amplitude, band_hz=(0.02, 0.8), seed=sd)
+            run = IpmcPlant(effects=fx, seed=sd, dt_s=1 / RATE).run(u)
+            return save_csv(Record(run.t_s, run.u_v, run.y_mm), Path(tmp) / f"{sd}_{len(fx)}.csv")
+
+        _, _, s1 = run_cli(record({}, seed), Path(tmp) / f"day1_{seed}")
+        for label, fx in STALE_CHANGES:
+            out = Path(tmp) / f"day2_{seed}_{label.replace(' ', '_')}"
+            code, sec, s = run_cli(record(fx, seed + 100), out, model=s1["model_before"])
+            acc = [c["evidence"]["describe"] for c in s.get("candidates", []) if c["accepted"]]
+            print(f"| {label} | {seed} | {', '.join(s.get('effects_found', [])) or 'none'} | "
+                  f"{'; '.join(acc)} | {s.get('rmse_before_mm', 0):.4f} -> "
+                  f"{s.get('rmse_after_mm', 0):.4f} | {sec:.0f} s |", flush=True)
+
+
 def _convert(src, dst, cols, scale_y, rate=None):
     rows = list(csv.reader(open(src)))[1:]
     a = np.array([[float(r[c]) for c in cols] for r in rows])
@@ -172,5 +213,7 @@ if __name__ == "__main__":
             effects(tmp, only=tuple(sys.argv[2:]) or None)
         if what in ("thirdparty", "all"):
             thirdparty(tmp)
+        if what == "stale":
+            stale(tmp, tuple(int(a) for a in sys.argv[2:]) or (0, 1))
         if what == "creepfit":
             creepfit(tuple(int(a) for a in sys.argv[2:]) or (0, 1, 3))
