@@ -895,14 +895,19 @@ def _fit_drift(model, narx, u, y, t, iterations):
         yy = cur.simulate(u, y[:L])
         # z: the prediction without the drift being fitted (backward of this drift only)
         z = yy if eff is None else eff.backward(yy, u, t, dt)
-        ok = np.arange(u.size) >= L
-        # z and 1 are nuisance terms: the baseline fitted on drifting data has the record's
-        # mean gain and offset, so the drift shows as a z t and t slope around them
-        A = np.column_stack([z[ok] * mins[ok], mins[ok], z[ok], np.ones(int(ok.sum()))])
-        coef, *_ = np.linalg.lstsq(A, (y - z)[ok], rcond=None)
-        eff = Effect("drift", gain_loss_per_min=float(-coef[0]),
-                     offset_mm_per_min=float(coef[1]))
+        eff = _drift_on_residual(z, y, mins, L)
     return model.refit(narx, u, y, model.effects + [eff]), eff
+
+
+def _drift_on_residual(z, y, mins, skip: int) -> Effect:
+    """Drift from y - z regressed on z t, t, z and 1 (from sample ``skip``; t in minutes). z and
+    1 are nuisance terms, not kept: a baseline fitted on drifting data has the record's mean
+    gain and offset, and a model from another day can be off by a constant factor (a dead zone
+    lowers the gain); only the change in time is drift."""
+    z, y, mins = z[skip:], y[skip:], mins[skip:]
+    A = np.column_stack([z * mins, mins, z, np.ones_like(z)])
+    coef, *_ = np.linalg.lstsq(A, y - z, rcond=None)
+    return Effect("drift", gain_loss_per_min=float(-coef[0]), offset_mm_per_min=float(coef[1]))
 
 
 def dead_time_test(u, y, dt_s: float, *, max_delay_s: float = 0.5, output_lags: int = 4,
@@ -1077,9 +1082,9 @@ def fit_frozen_effect(name: str, model: AugmentedModel, u, y) -> tuple[Augmented
     the free-run residual, with a constant gain and offset as nuisance terms (kept out of the
     block: only the change in time is drift). The other blocks' one parameter (delay in whole
     samples up to 0.5 s, dead-zone width up to half of max |u|, negative-gain ratio 0.5-2,
-    saturation limit 0.8-3 x max |y|) minimises the free-run RMSE of the augmented model on (u, y) (the fit part only)
-    over a grid of :data:`FROZEN_GRID_POINTS` values, refined between the best value's
-    neighbours (bounded Brent; not for the delay, which is in samples).
+    saturation limit 0.8-3 x max |y|) minimises the free-run RMSE of the augmented model on
+    (u, y) (the fit part only) over a grid of :data:`FROZEN_GRID_POINTS` values, refined
+    between the best value's neighbours (bounded Brent; not for the delay, in samples).
 
     Returns
     -------
@@ -1097,16 +1102,11 @@ def fit_frozen_effect(name: str, model: AugmentedModel, u, y) -> tuple[Augmented
     same_length(u=u, y=y)
     rmse_model = _free_run_rmse(model, u, y)
     if name == "drift":
-        # linear in its two parameters around a fixed model: least squares, no grid. A constant
-        # gain and offset (z, 1) are nuisance terms, as in the backfit: a model from another
-        # day can be off by a constant factor (a dead zone lowers the gain), which is no drift
-        # in time (a stale model on a dead-zone record: drift +42 % held out without them).
+        # linear around a fixed model: the backfit's first pass, nothing refitted (without the
+        # constant gain as nuisance a stale model passed a drift of +42 % on a dead-zone record)
         L = model.max_lag_
-        z = model.simulate(u, y[:L])
-        m = np.arange(u.size) * model.dt_s / 60.0
-        X = np.column_stack([-m * z, m, z, np.ones_like(z)])[L:]
-        coef = np.linalg.lstsq(X, (y - z)[L:], rcond=None)[0]
-        eff = Effect("drift", gain_loss_per_min=coef[0], offset_mm_per_min=coef[1])
+        eff = _drift_on_residual(model.simulate(u, y[:L]), y, np.arange(u.size) * model.dt_s
+                                 / 60.0, L)
         out = AugmentedModel(model.baseline, model.effects + [eff], model.dt_s)
         eff.frozen_ = {"fit_rmse_mm": _free_run_rmse(out, u, y),
                        "fit_rmse_before_mm": rmse_model, "at_edge": False}
