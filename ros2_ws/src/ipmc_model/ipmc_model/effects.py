@@ -74,7 +74,7 @@ OUTPUT_EFFECTS = ("creep", "drift", "saturation")
 INPUT_EFFECTS = ("delay", "dead_zone", "asymmetry", "rate_dependence")
 #: Effects whose fit refits the baseline NARX (the others keep it fixed).
 REFIT_EFFECTS = ("delay", "dead_zone", "asymmetry", "rate_dependence", "saturation")
-#: Static blocks that can also be fitted around a model kept as it is (a model given to the
+#: Blocks that can also be fitted around a model kept as it is (a model given to the
 #: diagnosis, fitted on other data): :func:`fit_frozen_effect`.
 FROZEN_EFFECTS = ("drift", "delay", "dead_zone", "asymmetry", "saturation")
 #: Points of the frozen fits' parameter grids (then refined between the best one's neighbours).
@@ -1109,7 +1109,7 @@ def fit_frozen_effect(name: str, model: AugmentedModel, u, y) -> tuple[Augmented
                                  / 60.0, L)
         out = AugmentedModel(model.baseline, model.effects + [eff], model.dt_s)
         eff.frozen_ = {"fit_rmse_mm": _free_run_rmse(out, u, y),
-                       "fit_rmse_before_mm": rmse_model, "at_edge": False}
+                       "fit_rmse_before_mm": rmse_model}
         return out, eff
     key = Effect._KEYS[name][0]
 
@@ -1133,11 +1133,8 @@ def fit_frozen_effect(name: str, model: AugmentedModel, u, y) -> tuple[Augmented
                               options={"xatol": 1e-3 * (hi - lo)})
         if res.success and res.fun < best_score:
             best, best_score = float(res.x), float(res.fun)
-    if not np.isfinite(best_score):
-        raise ValueError(f"no {name} parameter gives a finite free run on this record")
     eff = Effect(name, **{key: best})
-    eff.frozen_ = {"fit_rmse_mm": best_score, "fit_rmse_before_mm": rmse_model,
-                   "at_edge": bool(i in (0, len(grid) - 1))}
+    eff.frozen_ = {"fit_rmse_mm": best_score, "fit_rmse_before_mm": rmse_model}
     return AugmentedModel(model.baseline, model.effects + [eff], model.dt_s), eff
 
 
