@@ -163,15 +163,16 @@ def stale(tmp, seeds=(0, 1), amplitude=3.0):
     print("| day 2 plant | seed | found | fitted | held-out RMSE before -> after (mm) | wall |")
     print("|---|---|---|---|---|---|")
     for seed in seeds:
-        def record(fx, sd):
+        def record(fx, sd, name):
             _, u = mixed(120.0, RATE, amplitude, band_hz=(0.02, 0.8), seed=sd)
             run = IpmcPlant(effects=fx, seed=sd, dt_s=1 / RATE).run(u)
-            return save_csv(Record(run.t_s, run.u_v, run.y_mm), Path(tmp) / f"{sd}_{len(fx)}.csv")
+            return save_csv(Record(run.t_s, run.u_v, run.y_mm), Path(tmp) / f"{name}.csv")
 
-        _, _, s1 = run_cli(record({}, seed), Path(tmp) / f"day1_{seed}")
+        _, _, s1 = run_cli(record({}, seed, f"day1_{seed}"), Path(tmp) / f"day1_{seed}")
         for label, fx in STALE_CHANGES:
-            out = Path(tmp) / f"day2_{seed}_{label.replace(' ', '_')}"
-            code, sec, s = run_cli(record(fx, seed + 100), out, model=s1["model_before"])
+            name = f"day2_{seed}_{label.replace(' ', '_').replace('/', '')}"
+            code, sec, s = run_cli(record(fx, seed + 100, name), Path(tmp) / name,
+                                   model=s1["model_before"])
             acc = [c["evidence"]["describe"] for c in s.get("candidates", []) if c["accepted"]]
             print(f"| {label} | {seed} | {', '.join(s.get('effects_found', [])) or 'none'} | "
                   f"{'; '.join(acc)} | {s.get('rmse_before_mm', 0):.4f} -> "
