@@ -320,6 +320,11 @@ def test_driver_through_emulator_link_with_faults_watchdog_and_shutdown(ros_env,
     clean = [st for a, st in wall_to_stamp.items() if t_clean <= a < t_faults]
     clean_steps = {b - a for a, b in zip(clean, clean[1:], strict=False)}
     assert clean_steps == {PERIOD_NS}
+    # The probe sees the recorder's subscription in the graph before the driver's publisher has
+    # matched it (discovery is per pair): the first samples of the clean phase may not reach the
+    # bag (10 of 201 in one make test run). Not more than 0.5 s of them, and none after the first.
+    assert stamps[0] - clean[0] < 0.5e9
+    clean = [st for st in clean if st >= stamps[0]]
     assert sum(1 for st in stamps if clean[0] <= st <= clean[-1]) == len(clean)
     y_clean = [disp[st] for st in clean]
     assert max(y_clean) - min(y_clean) > 1.0  # the actuator responded (mm)
