@@ -1084,7 +1084,9 @@ def fit_frozen_effect(name: str, model: AugmentedModel, u, y) -> tuple[Augmented
     samples up to 0.5 s, dead-zone width up to half of max |u|, negative-gain ratio 0.5-2,
     saturation limit 0.8-3 x max |y|) minimises the free-run RMSE of the augmented model on
     (u, y) (the fit part only) over a grid of :data:`FROZEN_GRID_POINTS` values, refined
-    between the best value's neighbours (bounded Brent; not for the delay, in samples).
+    between the best value's neighbours (bounded Brent; not for the delay, in samples; below
+    the first dead-zone width the neighbour is 0). A dead zone narrower than half the first
+    width is refused: no grid value beats the model as given.
 
     Returns
     -------
@@ -1129,6 +1131,8 @@ def fit_frozen_effect(name: str, model: AugmentedModel, u, y) -> tuple[Augmented
                          f"{best:.4g} {PARAM_UNITS[key]}: {best_score:.4g} mm)")
     if name != "delay" and len(grid) > 2:
         lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+        if name == "dead_zone" and i == 0:  # below the first width lies 0, not the grid's end
+            lo = 0.0
         res = minimize_scalar(score, bounds=(lo, hi), method="bounded",
                               options={"xatol": 1e-3 * (hi - lo)})
         if res.success and res.fun < best_score:

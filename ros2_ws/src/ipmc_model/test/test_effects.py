@@ -282,6 +282,18 @@ def test_frozen_fit_recovers_the_block_around_a_fixed_model(record, base, name, 
     assert eff.frozen_["fit_rmse_mm"] < 0.02 < eff.frozen_["fit_rmse_before_mm"]
 
 
+def test_frozen_fit_finds_a_dead_zone_narrower_than_its_grid_step(record, base):
+    # the grid's first width is 1/25 of half the input range; a narrower dead zone (here
+    # 0.6 of it: the first width still beats no block) lies between it and 0, and the
+    # refinement must look there (it stopped at the first width, 67 % too wide)
+    u, _ = record
+    width = 0.6 * 0.5 * np.max(np.abs(u)) / 25
+    truth = AugmentedModel(base.baseline, [Effect("dead_zone", width_v=width)], base.dt_s)
+    y = truth.simulate(u) + 0.005 * np.random.default_rng(2).standard_normal(u.size)
+    _, eff = fit_frozen_effect("dead_zone", base, u, y)
+    assert eff.params["width_v"] == pytest.approx(width, rel=0.1)
+
+
 def test_frozen_fit_refuses_a_block_the_data_do_not_need(record, base):
     u, _ = record
     y = base.simulate(u) + 0.005 * np.random.default_rng(1).standard_normal(u.size)
