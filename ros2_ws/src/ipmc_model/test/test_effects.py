@@ -215,6 +215,12 @@ def test_fit_creep_on_holds_recovers_tau_and_gain_beside_the_settling():
 
 @pytest.mark.parametrize("seed, tau_s, gain", [
     (6, 15.0, -0.2),
+    # forward creeps (the tip keeps going the input's way), not used to design; the
+    # diagnosis still refuses them (docs/diagnose.md, "Forward creep (session 8)")
+    (9, 12.0, 0.1), (10, 12.0, 0.1), (9, 15.0, 0.2),
+    # the first forward case run: 18.4 s, +0.139 mm/V (1.53x, +39 %), the slow side again
+    pytest.param(8, 12.0, 0.1, marks=pytest.mark.xfail(
+        strict=True, reason="tau 12 s fitted 18.4 s (1.53x): docs/diagnose.md")),
     # a slow creep on a short record: the fit's profile is flat over tau 14-27 s, it gives
     # tau 20.8 s (within 1.5x) but -0.091 mm/V (-40 %; the drift rate g / tau is within 12 %)
     pytest.param(7, 30.0, -0.15, marks=pytest.mark.xfail(
