@@ -23,7 +23,14 @@ dead_zone      input    v = sign(u) max(|u| - width_v, 0)
 asymmetry      input    v = u for u >= 0, negative_gain_ratio u for u < 0
 rate_dependence input   an extra input channel, the voltage rate du/dt (V/s) low-passed with
                         tau_s: the bending depends on how fast the voltage changes
+memory         input    an extra input channel, the voltage low-passed with tau_s (V): the
+                        polymer's back-relaxation remembers the input beyond the NARX's lag
+                        window. A block of the baseline (``diagnose(memory_taus_s=...)``),
+                        never a candidate effect
 ============== ======== ==================================================================
+
+The channel blocks (rate_dependence, memory) act after the other input effects, whatever the
+order they were added in: they read the transformed voltage (the first channel).
 
 Fitting (:func:`fit_effect`): creep and drift are additive/multiplicative terms on the output
 of the current model; their parameters come from least squares on its free-run residual on the
@@ -70,6 +77,10 @@ from .persistence import load_model, read_model_document, save_model
 
 EFFECT_NAMES = ("creep", "drift", "delay", "rate_dependence", "asymmetry", "dead_zone",
                 "saturation")
+#: Blocks of a baseline that are not candidate effects (never in ``effects_found``).
+BASELINE_BLOCKS = ("memory",)
+#: Input blocks that append a channel (they act after the other input effects).
+CHANNEL_BLOCKS = ("rate_dependence", "memory")
 OUTPUT_EFFECTS = ("creep", "drift", "saturation")
 INPUT_EFFECTS = ("delay", "dead_zone", "asymmetry", "rate_dependence")
 #: Effects whose fit refits the baseline NARX (the others keep it fixed).
@@ -98,7 +109,7 @@ class Effect:
     Parameters
     ----------
     name : str
-        One of :data:`EFFECT_NAMES`.
+        One of :data:`EFFECT_NAMES` or :data:`BASELINE_BLOCKS`.
     **params : float
         The effect's parameters (keys as in the module table).
     """
@@ -111,11 +122,13 @@ class Effect:
         "dead_zone": ("width_v",),
         "asymmetry": ("negative_gain_ratio",),
         "rate_dependence": ("tau_s",),
+        "memory": ("tau_s",),
     }
 
     def __init__(self, name: str, **params):
-        if name not in EFFECT_NAMES:
-            raise ValueError(f"unknown effect {name!r}; known: {', '.join(EFFECT_NAMES)}")
+        if name not in EFFECT_NAMES + BASELINE_BLOCKS:
+            raise ValueError(f"unknown effect {name!r}; known: "
+                             f"{', '.join(EFFECT_NAMES + BASELINE_BLOCKS)}")
         keys = self._KEYS[name]
         if set(params) != set(keys):
             raise ValueError(f"effect {name!r} needs parameters {list(keys)}, "
@@ -125,7 +138,7 @@ class Effect:
         for k, v in self.params.items():
             if not math.isfinite(v):
                 raise ValueError(f"effect {name!r}: parameter {k} must be finite, got {v}")
-        if name in ("creep", "rate_dependence") and self.params["tau_s"] <= 0:
+        if name in ("creep", *CHANNEL_BLOCKS) and self.params["tau_s"] <= 0:
             raise ValueError(f"effect {name!r}: tau_s must be > 0, got {self.params['tau_s']}")
         if name == "saturation" and self.params["limit_mm"] <= 0:
             raise ValueError(f"saturation: limit_mm must be > 0, got {self.params['limit_mm']}")
@@ -151,7 +164,7 @@ class Effect:
 
     # -- batch (whole records; ``u`` includes the past, ``t_s`` aligned with it) --
     def n_channels(self) -> int:
-        return 2 if self.name == "rate_dependence" else 1
+        return 2 if self.name in CHANNEL_BLOCKS else 1
 
     def apply_input(self, v: np.ndarray, dt_s: float) -> np.ndarray:
         """Input effect on a whole record (N,) or (N, c) -> (N,) or (N, c + 1)."""
@@ -168,12 +181,12 @@ class Effect:
             return np.sign(v) * np.maximum(np.abs(v) - p["width_v"], 0.0)
         if self.name == "asymmetry":
             return np.where(v >= 0.0, v, p["negative_gain_ratio"] * v)
-        # rate_dependence: append the low-passed voltage rate of the first channel
+        # channel blocks: append the low-passed voltage rate (rate_dependence) or the
+        # low-passed voltage (memory) of the first channel
         u0 = v if v.ndim == 1 else v[:, 0]
-        rate = np.diff(u0, prepend=u0[:1]) / dt_s
+        x = np.diff(u0, prepend=u0[:1]) / dt_s if self.name == "rate_dependence" else u0
         a = math.exp(-dt_s / p["tau_s"])
-        rho = lfilter([1.0 - a], [1.0, -a], rate)
-        return np.column_stack([v, rho])
+        return np.column_stack([v, lfilter([1.0 - a], [1.0, -a], x)])
 
     def creep_state(self, u: np.ndarray, dt_s: float) -> np.ndarray:
         """Creep c_k for every k from the input (N,) (causal: c_k uses u up to k - 1)."""
@@ -225,7 +238,7 @@ class _Runner:
         self.u_prev = 0.0
         if effect.name == "delay":
             self.line = deque([0.0] * int(round(p["delay_s"] / dt_s)))
-        if effect.name in ("creep", "rate_dependence"):
+        if effect.name in ("creep", *CHANNEL_BLOCKS):
             self.a = math.exp(-dt_s / p["tau_s"])
 
     def apply(self, u_k):
@@ -239,10 +252,14 @@ class _Runner:
             return math.copysign(max(abs(u_k) - p["width_v"], 0.0), u_k)
         if name == "asymmetry":
             return u_k if u_k >= 0 else p["negative_gain_ratio"] * u_k
-        rate = (u_k - self.u_prev) / self.dt_s
-        self.u_prev = u_k
-        self.rho = self.a * self.rho + (1.0 - self.a) * rate
-        return (u_k, self.rho)
+        # channel blocks: u_k is the voltage or the channels so far (the voltage first)
+        chans = u_k if isinstance(u_k, tuple) else (u_k,)
+        x = chans[0]
+        if name == "rate_dependence":
+            x = (chans[0] - self.u_prev) / self.dt_s
+            self.u_prev = chans[0]
+        self.rho = self.a * self.rho + (1.0 - self.a) * x
+        return (*chans, self.rho)
 
     def invert(self, v_k):
         name, p = self.e.name, self.e.params
@@ -318,7 +335,10 @@ class AugmentedModel:
         return [e.name for e in self.effects]
 
     def _inputs(self):
-        return [e for e in self.effects if e.side == "input"]
+        # channel blocks last: they read the voltage the other input effects give
+        ins = [e for e in self.effects if e.side == "input"]
+        return ([e for e in ins if e.name not in CHANNEL_BLOCKS]
+                + [e for e in ins if e.name in CHANNEL_BLOCKS])
 
     def _outputs(self):
         return [e for e in self.effects if e.side == "output"]
@@ -400,7 +420,14 @@ class AugmentedModel:
         m = AugmentedModel(self.baseline, self.effects if effects is None else effects,
                            self.dt_s)
         v, z = m.to_baseline_space(u, y)
-        m.baseline = copy.deepcopy(narx).fit(v, z)
+        nx = copy.deepcopy(narx)
+        lags = nx.input_lags
+        n_ch = 1 if v.ndim == 1 else v.shape[1]
+        if not np.isscalar(lags) and len(lags) < n_ch:
+            # per-channel lags name the channels the template knew (the voltage, memory
+            # channels); a channel an effect appends (rate) gets the voltage's lags
+            nx.input_lags = tuple(lags) + (lags[0],) * (n_ch - len(lags))
+        m.baseline = nx.fit(v, z)
         return m
 
     # -- step by step --
@@ -411,9 +438,9 @@ class AugmentedModel:
     def fit_inverse(self, u, y, inverse: InverseNarxModel | None = None) -> InverseNarxModel:
         """Fit an inverse NARX (Eq. 19) of the baseline in its own space (v, z) from the
         record (u V, y mm) the model was identified on; for :meth:`inverse_stepper`."""
-        if any(e.name in ("delay", "rate_dependence") for e in self.effects):
-            raise ValueError("a model with delay or rate_dependence cannot be inverted step by "
-                             "step")
+        if any(e.name in ("delay", *CHANNEL_BLOCKS) for e in self.effects):
+            raise ValueError("a model with delay, rate_dependence or memory cannot be inverted "
+                             "step by step")
         v, z = self.to_baseline_space(u, y)
         inv = InverseNarxModel() if inverse is None else copy.deepcopy(inverse)
         return inv.fit(v, z)
@@ -440,7 +467,7 @@ class AugmentedStepper:
         t_k = self._t0 + self._k * self._m.dt_s
         v = float(u_k)
         for r in self._in:
-            v = r.apply(v) if not isinstance(v, tuple) else v
+            v = r.apply(v)
         y = self._base.step(np.asarray(v, dtype=float))
         for r in self._out:
             y = r.forward(y, t_k)
@@ -470,7 +497,7 @@ class AugmentedInverseStepper:
 
     def __init__(self, model: AugmentedModel, inverse: InverseNarxModel, t0_s: float = 0.0):
         for e in model.effects:
-            if e.name in ("delay", "rate_dependence"):
+            if e.name in ("delay", *CHANNEL_BLOCKS):
                 raise ValueError(f"the {e.name} effect cannot be inverted step by step")
         self._m = model
         self._in = [e.runner(model.dt_s) for e in model._inputs()]
