@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -197,6 +198,34 @@ def test_given_model_from_a_clean_day_names_what_changed(day1_model, effect, par
     assert d.rmse_after_mm < 0.6 * d.rmse_before_mm
 
 
+
+# Memory channels (docs/diagnose.md, "Memory channels"): time constants 1 and 3 s chosen on an
+# oracle on seeds 0, 1; seeds 6, 7 used for nothing. `mixed` 1.5 V, 120 s at 50 Hz. Measured
+# with FAST: 0.3 V found on both seeds with memory, on seed 7 only without; 0.5 V found on
+# seed 7, not on seed 6 (-2.4 %), so 0.5 V is not asserted.
+@pytest.mark.parametrize("seed", [6, 7])
+@pytest.mark.parametrize("effect", ["dead_zone", None])
+def test_memory_channels_name_the_dead_zone_and_nothing_on_a_clean_record(seed, effect):
+    _, u = mixed(120.0, RATE, 1.5, band_hz=(0.02, 0.8), seed=seed)
+    fx = {"dead_zone": {"width_v": 0.3}} if effect else {}
+    run = IpmcPlant(effects=fx, seed=seed, dt_s=1 / RATE).run(u)
+    d = diagnose(run.t_s, run.u_v, run.y_mm, memory_taus_s=(1.0, 3.0), **FAST)
+    assert [e.name for e in d.model_before.effects] == ["memory", "memory"]
+    assert d.model_before.baseline.input_lags_ == (12, 1, 1)
+    if effect is None:
+        assert d.effects_found == []
+        return
+    assert d.effects_found[:1] == ["dead_zone"]
+    fitted = [e for e in d.model_after.effects if e.name == "dead_zone"][0]
+    assert fitted.params["width_v"] == pytest.approx(0.3, rel=0.1)
+    assert d.rmse_after_mm < 0.9 * d.rmse_before_mm
+
+
+def test_memory_channels_are_not_for_a_given_model(day1_model):
+    t, u, y = _mixed_record({}, seed=5, seconds=20.0)
+    with pytest.raises(ValueError, match="memory channels"):
+        diagnose(t, u, y, model=day1_model, memory_taus_s=(1.0,), **FAST)
+
 def test_cli_writes_the_contract(tmp_path):
     t, u, y = _plant({}, seed=0, seconds=40.0)
     csv = save_csv(Record(t, u, y), tmp_path / "clean.csv")
@@ -219,6 +248,21 @@ def test_cli_writes_the_contract(tmp_path):
     assert json.loads((out2 / "summary.json").read_text())["rmse_before_mm"] == \
         pytest.approx(summary["rmse_before_mm"], rel=1e-9)
 
+
+
+def test_cli_input_memory_taus_gives_the_baseline_memory_channels(tmp_path, capsys):
+    t, u, y = _plant({}, seed=0, seconds=40.0)
+    csv = save_csv(Record(t, u, y), tmp_path / "clean.csv")
+    out = tmp_path / "report"
+    assert main(["--data", str(csv), "--report", str(out), "--input-memory-taus", "1",
+                 "3"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    doc = json.loads(Path(summary["model_before"]).read_text())
+    assert [e["params"]["tau_s"] for e in doc["effects"] if e["name"] == "memory"] == [1, 3]
+    assert "memory channels 1, 3 s" in (out / "report.md").read_text()
+    assert main(["--data", str(csv), "--model", summary["model_before"], "--report",
+                 str(tmp_path / "again"), "--input-memory-taus", "1"]) == 1
+    assert "memory channels" in capsys.readouterr().err
 
 def test_cli_bad_data_fails_with_one_sentence(tmp_path, capsys):
     bad = tmp_path / "bad.csv"
