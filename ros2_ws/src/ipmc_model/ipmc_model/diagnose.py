@@ -380,9 +380,9 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
         Baseline structure (default 12 and 0; see :data:`BASELINE_INPUT_LAGS`).
     memory_taus_s : sequence of float
         Time constants (s) of memory channels given to the baseline identified here: the
-        voltage (after any input effect) low-passed, each one more input channel with the
-        same lags. They carry the back-relaxation beyond the 1.2 s lag window
-        (docs/diagnose.md, "Memory channels"). Default none. Not with ``model``.
+        voltage (after any input effect) low-passed, each one more input channel with one
+        lag. They carry the back-relaxation beyond the 1.2 s lag window (docs/diagnose.md,
+        "Memory channels"). Default none. Not with ``model``.
     progress : callable, optional
         ``progress(message: str)`` for progress lines (the CLI prints them to stderr).
     """
