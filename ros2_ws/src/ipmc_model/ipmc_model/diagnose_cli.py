@@ -13,7 +13,7 @@ import sys
 
 from .diagnose import diagnose, print_progress, write_report
 from .effects import load_augmented
-from .identify_cli import _memory_taus, _taus_list
+from .identify_cli import add_input_memory_taus, taus_list
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -29,13 +29,11 @@ def _parser() -> argparse.ArgumentParser:
                                    "default: identify one on the first 70 %% of the data")
     p.add_argument("--report", required=True, metavar="DIR", help="output directory")
     p.add_argument("--seed", type=int, default=0, help="seed of tuning and prototypes")
-    p.add_argument("--input-memory-taus", nargs="+", type=_memory_taus, default=None,
-                   metavar="TAU",
-                   help="memory channels for the baseline identified here: the voltage "
-                        "low-passed with these time constants (s, e.g. 1 3), each one more "
-                        "input channel; they carry the back-relaxation beyond the baseline's "
-                        "1.2 s lag window (docs/diagnose.md, 'Memory channels'); default none; "
-                        "not with --model")
+    add_input_memory_taus(
+        p, "memory channels for the baseline identified here: the voltage low-passed with "
+           "these time constants (s, e.g. 1 3), each one more input channel; they carry the "
+           "back-relaxation beyond the baseline's 1.2 s lag window (docs/diagnose.md, "
+           "'Memory channels'); default none; not with --model")
     return p
 
 
@@ -54,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
                 raise ValueError(f"the model was identified at {1 / model.dt_s:.4g} Hz, the "
                                  f"data are at {rec.rate_hz:.4g} Hz")
         d = diagnose(rec.t_s, rec.u_v, rec.y_mm, model=model, seed=args.seed,
-                     memory_taus_s=_taus_list(args.input_memory_taus or ()),
+                     memory_taus_s=taus_list(args.input_memory_taus),
                      progress=print_progress)
         summary = write_report(d, args.report, data_label=str(args.data))
     except ValueError as exc:  # DataError, ModelFileError and bad inputs are ValueErrors

@@ -163,9 +163,6 @@ class Effect:
         return {"name": self.name, "params": dict(self.params)}
 
     # -- batch (whole records; ``u`` includes the past, ``t_s`` aligned with it) --
-    def n_channels(self) -> int:
-        return 2 if self.name in CHANNEL_BLOCKS else 1
-
     def apply_input(self, v: np.ndarray, dt_s: float) -> np.ndarray:
         """Input effect on a whole record (N,) or (N, c) -> (N,) or (N, c + 1)."""
         p = self.params

@@ -73,9 +73,16 @@ def _memory_taus(text: str) -> tuple[float, ...]:
     return taus
 
 
-def _taus_list(values) -> tuple[float, ...]:
-    """--input-memory-taus TAU [TAU ..] (each token parsed by _memory_taus: a comma list)."""
-    return tuple(t for v in values for t in v)
+def taus_list(values) -> tuple[float, ...]:
+    """--input-memory-taus TAU [TAU ..] (each token parsed by _memory_taus: a comma list);
+    () when the option was not given."""
+    return tuple(t for v in values or () for t in v)
+
+
+def add_input_memory_taus(p: argparse.ArgumentParser, help_text: str) -> None:
+    """The ``--input-memory-taus TAU [TAU ..]`` option (s) of the commands that take it."""
+    p.add_argument("--input-memory-taus", nargs="+", type=_memory_taus, default=None,
+                   metavar="TAU", help=help_text)
 
 
 def _lag_step(text: str):
@@ -188,14 +195,12 @@ def _identify_parser() -> argparse.ArgumentParser:
                         "low-passed with these time constants (s, comma list, e.g. 1.0); they "
                         "let the inverse undo the IPMC's back-relaxation without a voltage "
                         "recursion (default none: the paper's structure)")
-    p.add_argument("--input-memory-taus", nargs="+", type=_memory_taus, default=None,
-                   metavar="TAU",
-                   help="lssvm-narx forward: voltage channels, the voltage low-passed with "
-                        "these time constants (s, e.g. 0.3 0.5), built by the model from the "
-                        "raw voltage and stored in its file; such a model can be inverted for "
-                        "the feedforward (model_server, ipmc track). Input and output lags "
-                        f"default to {DEFAULT_CHANNEL_LAGS}; C and sigma tuned by ABC, or "
-                        "--tune none with --C and --sigma (e.g. --C 1e6 --sigma 1)")
+    add_input_memory_taus(
+        p, "lssvm-narx forward: voltage channels, the voltage low-passed with these time "
+           "constants (s, e.g. 0.3 0.5), built by the model from the raw voltage and stored in "
+           "its file; such a model can be inverted for the feedforward (model_server, ipmc "
+           f"track). Input and output lags default to {DEFAULT_CHANNEL_LAGS}; C and sigma "
+           "tuned by ABC, or --tune none with --C and --sigma (e.g. --C 1e6 --sigma 1)")
     p.add_argument("--no-raw-voltage", dest="raw_voltage", action="store_false",
                    help="with --input-memory-taus: the low-passed voltages only, not the "
                         "voltage itself (the structure that inverts smoothly)")
@@ -279,7 +284,7 @@ def _identify_channel_model(args, u, y, dt_s: float, meta: dict) -> NarxModel:
     if args.input_memory_taus is None:
         raise ValueError("--no-raw-voltage needs --input-memory-taus (the low-passed voltage "
                          "channels that replace the voltage)")
-    taus = _taus_list(args.input_memory_taus)
+    taus = taus_list(args.input_memory_taus)
     if args.inverse:
         raise ValueError("--input-memory-taus is for a forward model; an inverse model's "
                          "channels are --memory-taus (the desired displacement low-passed)")
