@@ -5,7 +5,9 @@ m/s (analytic for the smooth generators, 0 on a step train's levels; the control
 derivative acts on the error with it) (frame ``ipmc_clamp``), published
 every ``1/rate_hz`` s of the node's clock (ROS time: with ``use_sim_time:=true`` it follows
 ``/clock``, and also ticks on each ``/clock`` message, so that it starts with a lock-step
-plant's first sample). The generator (``ipmc_control.references``) is chosen by ``kind``:
+plant's first sample; that first tick waits, at most 5 s of wall time, until every subscription
+the graph shows on ``/ipmc/reference`` has matched, so none misses the first samples). The
+generator (``ipmc_control.references``) is chosen by ``kind``:
 
 - ``constant``: ``value_mm``;
 - ``sine``: ``amplitude_mm``, ``frequency_hz``, ``offset_mm``, ``phase_rad``;
@@ -28,11 +30,13 @@ import math
 
 from geometry_msgs.msg import PointStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 from ipmc_control.pid import ControlParameterError
 from ipmc_control.references import KINDS, Reference, make_reference
+from ipmc_driver.matching import MatchGate
 from ipmc_driver.node_runtime import run_node
 from ipmc_driver.qos import LATCHED_CLOCK_QOS, PAIRED_SAMPLE_QOS
 
@@ -115,6 +119,18 @@ class ReferenceNode(Node):
             # lock-step plant publishes its sample 0 and waits for the command, which waits for
             # this reference: tick on /clock itself, so the reference starts at the plant's t = 0.
             self.create_subscription(ClockMsg, "/clock", self._on_clock, LATCHED_CLOCK_QOS)
+            # The first /clock sends a burst (up to preview_s ahead) at once: hold it until
+            # every subscription the graph shows has matched, or a volatile one (model_server,
+            # a recorder) loses it and a lock-step controller waits for feedforwards that
+            # never come. A wall timer retries the held tick while the simulated clock waits.
+            self._start_gate: MatchGate | None = MatchGate(
+                self.count_subscribers, [(self.pub, "/ipmc/reference", 0)],
+                warn=self.get_logger().warn)
+            self._held_ns: int | None = None
+            self._hold_timer = self.create_timer(
+                0.005, self._retry_held, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        else:
+            self._start_gate = None
         self.get_logger().info(
             f"reference: {self.get_parameter('kind').value} at {self.rate_hz:g} Hz")
 
@@ -146,7 +162,17 @@ class ReferenceNode(Node):
     def _on_tick(self) -> None:
         self._publish_until(self.get_clock().now().nanoseconds)
 
+    def _retry_held(self) -> None:
+        if self._held_ns is not None:
+            self._publish_until(self._held_ns)
+
     def _publish_until(self, now_ns: int) -> None:
+        if self._start_gate is not None:
+            if not self._start_gate.ready():
+                self._held_ns = now_ns
+                return
+            self._start_gate, self._held_ns = None, None
+            self.destroy_timer(self._hold_timer)
         if self._t0_ns is None or now_ns < self._t0_ns:  # first tick, or the clock went back
             self._t0_ns, self._next_k = now_ns, 0
         # Every sample of the grid t0 + k / rate_hz up to now + preview, so that a late tick

@@ -31,6 +31,7 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import Float64
 
 from ipmc_driver.dataio import stamp_ns
+from ipmc_driver.matching import MatchGate
 from ipmc_driver.node_runtime import run_node
 from ipmc_driver.plant import EFFECTS, IpmcPlant, load_plant_params
 from ipmc_driver.qos import COMMAND_QOS, LATCHED_CLOCK_QOS, SAMPLE_QOS
@@ -55,8 +56,10 @@ class SimPlant(Node):
         self.declare_parameter("lockstep_timeout_s", 0.2, ParameterDescriptor(
             description="lockstep: longest wall-time wait for a command before stepping anyway"))
         self.declare_parameter("lockstep_min_subscribers", 1, ParameterDescriptor(
-            description="lockstep: time starts once this many nodes subscribe to "
-                        "/ipmc/displacement (so a late recorder misses nothing)", read_only=True))
+            description="lockstep: time starts once this many subscriptions to "
+                        "/ipmc/displacement have matched (so a late recorder misses nothing), "
+                        "and every one the graph shows on /ipmc/displacement, /ipmc/voltage and "
+                        "/clock (for at most 5 s)", read_only=True))
         self.declare_parameter("lockstep_min_clock_subscribers", 0, ParameterDescriptor(
             description="lockstep: ... and this many to /clock (nodes on use_sim_time)",
             read_only=True))
@@ -77,7 +80,6 @@ class SimPlant(Node):
         self._min_subscribers = int(self.get_parameter("lockstep_min_subscribers").value)
         self._min_clock_subscribers = int(
             self.get_parameter("lockstep_min_clock_subscribers").value)
-        self._started = False
         self.dt_s = 1.0 / rate_hz
         effects = [e for e in self.get_parameter("effects").value if e]
         params = load_plant_params(self.get_parameter("params_file").value or None)
@@ -103,6 +105,13 @@ class SimPlant(Node):
 
         wall = Clock(clock_type=ClockType.STEADY_TIME)
         if self.lockstep:
+            # Time stands still until everyone expected listens, matched by DDS and not only
+            # seen on the graph: no sample is lost at start-up (ipmc_driver.matching).
+            self._start_gate = MatchGate(self.count_subscribers, [
+                (self.pub_disp, "/ipmc/displacement", max(1, self._min_subscribers)),
+                (self.pub_voltage, "/ipmc/voltage", 0),
+                (self.pub_clock, "/clock", self._min_clock_subscribers)],
+                warn=self.get_logger().warn)
             self._t0 = 0.0
             self.create_timer(0.0005, self._on_lockstep_tick, clock=wall)
         else:
@@ -133,13 +142,8 @@ class SimPlant(Node):
         self._publish_sample(*self.plant.step(self.command_v))
 
     def _on_lockstep_tick(self) -> None:
-        if not self._started:
-            # Time stands still until everyone expected listens: no sample is lost at start-up.
-            self._started = (
-                self.count_subscribers("/ipmc/displacement") >= max(1, self._min_subscribers)
-                and self.count_subscribers("/clock") >= self._min_clock_subscribers)
-            if not self._started:
-                return
+        if not self._start_gate.ready():
+            return
         waited = time.monotonic() - self._sample_wall
         timeout = self.get_parameter("lockstep_timeout_s").value
         if self.count_publishers("/ipmc/command_stamped") > 0:

@@ -1,0 +1,81 @@
+"""Hold a lock-step start until the subscriptions the graph shows have matched the publishers.
+
+The ROS graph (``count_subscribers``) can list a subscription before DDS has matched it with a
+publisher, and a volatile subscription gets nothing published before its match. In a lock-step
+run the first samples go out in a burst on the first ``/clock``: a subscription that matched
+a few milliseconds late lost them. Seen in CI: ``model_server`` missed the first three
+references, never answered them, and the controller waited 5 s for their feedforward.
+
+No rclpy import: a gate takes the node's ``count_subscribers`` and each publisher's
+``get_subscription_count`` (its matched subscriptions), so it is tested with stand-ins.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from typing import Protocol
+
+# Longest wall-time hold for subscriptions the graph shows that have not matched, s: one that
+# never matches (QoS incompatible, e.g. a transient-local echo of a volatile topic) must not
+# stop the run.
+MATCH_WAIT_S = 5.0
+
+
+class _Publisher(Protocol):
+    def get_subscription_count(self) -> int: ...
+
+
+class MatchGate:
+    """``ready()`` is True once every publisher has matched its topic's subscriptions.
+
+    ``outputs``: (publisher, topic, at_least) triples. A publisher must match at least
+    ``at_least`` subscriptions (no time limit: the nodes the run needs) and every subscription
+    the graph shows on its topic (for at most ``wait_s`` of wall time once the minimum is met;
+    then ``warn`` is called once with the topics still short, and the gate opens).
+    """
+
+    def __init__(self, count_subscribers: Callable[[str], int],
+                 outputs: Sequence[tuple[_Publisher, str, int]], *,
+                 warn: Callable[[str], None] = print, wait_s: float = MATCH_WAIT_S,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self._count = count_subscribers
+        self._outputs = list(outputs)
+        self._warn = warn
+        self.wait_s = wait_s
+        self._clock = clock
+        self._since: float | None = None
+        self.open = False
+
+    def short(self) -> dict[str, tuple[int, int]]:
+        """Topic -> (matched, needed) for every publisher still short."""
+        out = {}
+        for pub, topic, at_least in self._outputs:
+            matched = pub.get_subscription_count()
+            needed = max(at_least, self._count(topic))
+            if matched < needed:
+                out[topic] = (matched, needed)
+        return out
+
+    def ready(self) -> bool:
+        if self.open:
+            return True
+        short = self.short()
+        if not short:
+            self.open = True
+            return True
+        # The required minimum is never waived, and the graph's extra subscriptions get
+        # wait_s from the moment it is met.
+        if any(pub.get_subscription_count() < at_least for pub, _, at_least in self._outputs):
+            self._since = None
+            return False
+        now = self._clock()
+        if self._since is None:
+            self._since = now
+        if now - self._since < self.wait_s:
+            return False
+        self._warn("starting with subscription(s) the graph shows but DDS has not matched "
+                   f"after {self.wait_s:g} s (QoS incompatible?): "
+                   + ", ".join(f"{t} {m} of {n}" for t, (m, n) in short.items()))
+        self.open = True
+        return True
