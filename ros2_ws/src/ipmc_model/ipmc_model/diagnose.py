@@ -36,7 +36,10 @@ Procedure (:func:`diagnose`):
    paired: effect and current model refitted on the same rows. A creep fitted on the hold drift
    (tau and gain not chosen by the RMSE) needs the larger of ``CREEP_GAIN_SHARE`` x ``threshold``
    (5 %) and twice the refit spread: the plant's own creep at its true parameters gains 9.7 % on
-   the demo's 300 s step record.
+   the demo's 300 s step record; and
+   (c) *materiality*: the effect changes the held-out free-run prediction by at least the
+   record's noise floor, RMS (:func:`~ipmc_model.residuals.noise_floor`, :data:`MATERIAL_FACTOR`):
+   near the floor a change the sensor cannot resolve can still gain 10 % relatively.
    The best accepted candidate is added, and the search repeats on the rest (at most
    ``max_effects`` effects). With no missing effect nothing passes.
 
@@ -84,6 +87,7 @@ from .residuals import (
     correlation_test,
     hold_drift_test,
     ljung_box,
+    noise_floor,
     spectrum,
     whiteness_summary,
 )
@@ -258,6 +262,12 @@ CREEP_GAIN_SHARE = 0.5
 
 #: Significance of the refit-free evidence tests (F test of the dead-time scan).
 REFIT_FREE_ALPHA = 1e-3
+
+#: Materiality: an accepted effect must change the held-out free-run prediction (RMS, mm) by at
+#: least this multiple of the record's noise floor (:func:`~ipmc_model.residuals.noise_floor`).
+#: A change the sensor cannot resolve is no finding, however much it gains relatively on a
+#: model that is already at the noise floor.
+MATERIAL_FACTOR = 1.0
 
 
 def _refit_free_test(name: str, t: dict) -> dict:
@@ -455,6 +465,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
         f"{ana_before['rmse_one_mm']:.4f} mm")
 
     current, ana_cur, rmse_cur = before, ana_before, rmse_before
+    floor_mm = noise_floor(y)
 
     def row_variants(cur, rm_cur):
         """The current model refitted on other evenly spaced rows (80 %, 90 % of the budget):
@@ -569,12 +580,19 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
             if name in REFIT_EFFECTS and not frozen and test["significant"] and gain >= need:
                 # the gain must not hang on the rows the LSSVM happened to be fitted on
                 gains += paired_gains(current, eff, variants)
-            passes = bool(test["significant"] and test["r"] > 0 and min(gains) >= need)
+            change = (free - ana_cur["free_run"])[L:]
+            contribution = (float(np.sqrt(np.mean(change ** 2))) if np.all(np.isfinite(change))
+                            else 0.0)
+            material = contribution >= MATERIAL_FACTOR * floor_mm
+            passes = bool(test["significant"] and test["r"] > 0 and min(gains) >= need
+                          and material)
             ev = {"round": rnd, "params": dict(eff.params), "describe": eff.describe(),
                   "signature_corr": test["r"], "signature_bound_95": test["bound"],
                   "significant": bool(test["significant"] and test["r"] > 0),
                   "improvement": gain, "threshold": need, "refit_spread": spread,
                   "paired_improvements": gains[1:],
+                  "contribution_mm": contribution, "noise_floor_mm": floor_mm,
+                  "material": bool(material),
                   "fit": ("block around the given model, not refitted" if frozen
                           else "baseline refitted with the effect"),
                   "seconds": time.perf_counter() - tc}
@@ -593,7 +611,9 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
             ev["text"] = (("block around the given model (not refitted): " if frozen else "")
                           + f"{test['text']}; held-out free-run RMSE "
                           f"{rmse_cur:.4f} -> {rm:.4f} mm ({100 * gain:+.1f} %, needs "
-                          f"{100 * need:.0f} %{paired})")
+                          f"{100 * need:.0f} %{paired}); changes the prediction by "
+                          f"{contribution:.4f} mm RMS (noise floor {floor_mm:.4f} mm"
+                          + ("" if material else ": below it, not material") + ")")
             cand = Candidate(name, rm, False, ev, m)
             cand.passes = passes
             round_cands.append(cand)

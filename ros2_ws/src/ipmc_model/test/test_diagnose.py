@@ -221,6 +221,31 @@ def test_memory_channels_name_the_dead_zone_and_nothing_on_a_clean_record(seed, 
     assert d.rmse_after_mm < 0.9 * d.rmse_before_mm
 
 
+def test_an_effect_below_the_noise_floor_is_not_material(tmp_path):
+    """The record that motivated the rule (docs/diagnose.md, "Materiality"): `ipmc simulate`
+    random sine 1.0 V, 0.3 V dead zone, seed 1, 120 s at 50 Hz; full tuning, memory 1 and 3 s.
+    After the dead zone a drift passed every other rule (+13.0 %, r = 0.43) while changing the
+    held-out prediction by 0.0038 mm RMS, below the record's noise floor (0.0061 mm)."""
+    from ipmc_driver.simulate_cli import main as simulate
+
+    csv = tmp_path / "rs.csv"
+    assert simulate(["--input", "random-sine", "--amplitude", "1.0", "--seconds", "120",
+                     "--rate-hz", "50", "--seed", "1", "--effect", "dead_zone",
+                     "--out", str(csv)]) == 0
+    t, u, y = np.loadtxt(csv, delimiter=",", skiprows=1).T
+    d = diagnose(t, u, y, memory_taus_s=(1.0, 3.0))
+    assert d.effects_found == ["dead_zone"]
+    dz = next(c for c in d.candidates if c.accepted).evidence
+    assert dz["material"] and dz["contribution_mm"] > dz["noise_floor_mm"]
+    assert dz["noise_floor_mm"] == pytest.approx(0.0058, rel=0.15)  # 0.005 noise, 0.01 steps
+    drift = next(c for c in d.candidates
+                 if c.effect == "drift" and c.evidence["round"] == 2).evidence
+    # every other rule passes: only materiality refuses it
+    assert drift["significant"] and drift["improvement"] >= drift["threshold"]
+    assert not drift["material"] and drift["contribution_mm"] < drift["noise_floor_mm"]
+    assert "not material" in drift["text"]
+
+
 def test_memory_channels_are_not_for_a_given_model(day1_model):
     t, u, y = _mixed_record({}, seed=5, seconds=20.0)
     with pytest.raises(ValueError, match="memory channels"):

@@ -18,6 +18,7 @@ from ipmc_model.residuals import (
     hold_drift_test,
     ljung_box,
     low_frequency_share,
+    noise_floor,
     spectrum,
     whiteness_summary,
 )
@@ -297,3 +298,29 @@ def test_hold_drift_nuisance_signal_is_partialled_out():
                            nuisance=slow)["significant"]
     with pytest.raises(ValueError, match="nuisance"):
         hold_drift_test(r, creep, u, dt, nuisance=slow[:10])
+
+
+@pytest.mark.parametrize("rate_hz", [50.0, 100.0])
+def test_noise_floor_finds_the_noise_under_steps_and_sines(rate_hz):
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 120.0, 1.0 / rate_hz)
+    smooth = 2.0 * np.sin(2 * np.pi * 0.3 * t) + np.where((t // 7) % 2 == 0, 1.5, -1.0)
+    for sd in (0.002, 0.02):
+        est = noise_floor(smooth + sd * rng.standard_normal(t.size))
+        assert est == pytest.approx(sd, rel=0.10)
+
+
+def test_noise_floor_of_the_plant_includes_its_quantisation():
+    from ipmc_driver.plant import IpmcPlant
+    from ipmc_driver.signals import random_steps
+
+    _, u = random_steps(120.0, 50.0, amplitude=2.5, seed=0)
+    plant = IpmcPlant(seed=0, dt_s=0.02)
+    p = plant.params
+    true = np.hypot(p["noise_std_mm"], p["resolution_mm"] / np.sqrt(12.0))
+    assert noise_floor(plant.run(u).y_mm) == pytest.approx(true, rel=0.15)
+
+
+def test_noise_floor_refuses_a_record_too_short():
+    with pytest.raises(ValueError, match="at least 5"):
+        noise_floor([0.0, 1.0, 2.0])
