@@ -41,6 +41,7 @@ class MatchGate:
                  clock: Callable[[], float] = time.monotonic) -> None:
         self._count = count_subscribers
         self._outputs = list(outputs)
+        self._at_least = {topic: at_least for _, topic, at_least in self._outputs}
         self._warn = warn
         self.wait_s = wait_s
         self._clock = clock
@@ -66,7 +67,7 @@ class MatchGate:
             return True
         # The required minimum is never waived, and the graph's extra subscriptions get
         # wait_s from the moment it is met.
-        if any(pub.get_subscription_count() < at_least for pub, _, at_least in self._outputs):
+        if any(m < self._at_least[t] for t, (m, _) in short.items()):
             self._since = None
             return False
         now = self._clock()
