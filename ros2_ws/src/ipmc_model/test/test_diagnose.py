@@ -237,7 +237,8 @@ def test_an_effect_below_the_noise_floor_is_not_material(tmp_path):
     assert d.effects_found == ["dead_zone"]
     dz = next(c for c in d.candidates if c.accepted).evidence
     assert dz["material"] and dz["contribution_mm"] > dz["noise_floor_mm"]
-    assert dz["noise_floor_mm"] == pytest.approx(0.0058, rel=0.15)  # 0.005 noise, 0.01 steps
+    # noise 0.005 mm and 0.01 mm steps: 0.0058 mm (the noise alone is 14 % below)
+    assert dz["noise_floor_mm"] == pytest.approx(0.0058, rel=0.10)
     drift = next(c for c in d.candidates
                  if c.effect == "drift" and c.evidence["round"] == 2).evidence
     # every other rule passes: only materiality refuses it

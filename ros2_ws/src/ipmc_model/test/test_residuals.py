@@ -318,7 +318,8 @@ def test_noise_floor_of_the_plant_includes_its_quantisation():
     plant = IpmcPlant(seed=0, dt_s=0.02)
     p = plant.params
     true = np.hypot(p["noise_std_mm"], p["resolution_mm"] / np.sqrt(12.0))
-    assert noise_floor(plant.run(u).y_mm) == pytest.approx(true, rel=0.15)
+    # 10 %: the noise alone (0.005 mm) is 14 % below the true floor (0.0058 mm)
+    assert noise_floor(plant.run(u).y_mm) == pytest.approx(true, rel=0.10)
 
 
 def test_noise_floor_refuses_a_record_too_short():

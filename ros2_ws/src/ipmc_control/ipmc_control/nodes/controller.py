@@ -156,6 +156,7 @@ class Controller(Node):
         self._idle_reason = "starting"
         # trigger 'measurement': (t_s, now, target_ns, wall) of a step waiting for its u_ff.
         self._pending: tuple[float, float, int, float] | None = None
+        self._stepped = False   # a step has run (the first one waits for the reference)
         # Loop statistics for /diagnostics and the benchmark.
         self.ticks = 0
         self.deadline_misses = 0
@@ -277,8 +278,11 @@ class Controller(Node):
             self._step(_stamp_s(msg), self._y_rx_s, target_ns)
 
     def _missing_inputs(self, target_ns: int) -> bool:
-        if self._first_ref_ns is None:   # wait for the first sample if someone publishes
-            return self.count_publishers("/ipmc/reference") > 0
+        if self._first_ref_ns is None:
+            # Wait for the first sample if someone publishes, and on the very first step even
+            # before its publisher is seen: discovery can lag under load, and a controller that
+            # idled there let a lock-step plant run on before the reference began (CI, once).
+            return not self._stepped or self.count_publishers("/ipmc/reference") > 0
         if target_ns < self._first_ref_ns:
             return False   # before the reference starts: the step idles, nothing to wait for
         if target_ns not in self._recent_refs:
@@ -320,6 +324,7 @@ class Controller(Node):
     def _step(self, t_s: float, now: float, target_ns: int | None = None) -> None:
         """One control step at sample time ``t_s`` (s); ``now`` is the node clock (s);
         ``target_ns``: stamp of the reference sample this command aims at, if known."""
+        self._stepped = True
         self._answer_ns = (target_ns - int(round(1e9 / self.rate_hz)) if target_ns is not None
                            else int(round(t_s * 1e9)))
         wall = time.perf_counter()

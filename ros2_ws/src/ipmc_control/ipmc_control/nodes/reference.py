@@ -122,15 +122,14 @@ class ReferenceNode(Node):
             # The first /clock sends a burst (up to preview_s ahead) at once: hold it until
             # every subscription the graph shows has matched, or a volatile one (model_server,
             # a recorder) loses it and a lock-step controller waits for feedforwards that
-            # never come. A wall timer retries the held tick while the simulated clock waits.
+            # never come. While held, a wall timer retries (the simulated clock waits too).
             self._start_gate: MatchGate | None = MatchGate(
                 self.count_subscribers, [(self.pub, "/ipmc/reference", 0)],
                 warn=self.get_logger().warn)
-            self._held_ns: int | None = None
-            self._hold_timer = self.create_timer(
-                0.005, self._retry_held, clock=Clock(clock_type=ClockType.STEADY_TIME))
         else:
             self._start_gate = None
+        self._held_ns: int | None = None
+        self._hold_timer = None
         self.get_logger().info(
             f"reference: {self.get_parameter('kind').value} at {self.rate_hz:g} Hz")
 
@@ -170,9 +169,13 @@ class ReferenceNode(Node):
         if self._start_gate is not None:
             if not self._start_gate.ready():
                 self._held_ns = now_ns
+                if self._hold_timer is None:
+                    self._hold_timer = self.create_timer(
+                        0.005, self._retry_held, clock=Clock(clock_type=ClockType.STEADY_TIME))
                 return
             self._start_gate, self._held_ns = None, None
-            self.destroy_timer(self._hold_timer)
+            if self._hold_timer is not None:
+                self.destroy_timer(self._hold_timer)
         if self._t0_ns is None or now_ns < self._t0_ns:  # first tick, or the clock went back
             self._t0_ns, self._next_k = now_ns, 0
         # Every sample of the grid t0 + k / rate_hz up to now + preview, so that a late tick

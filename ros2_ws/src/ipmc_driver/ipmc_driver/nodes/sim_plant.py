@@ -77,9 +77,6 @@ class SimPlant(Node):
             raise ValueError(f"need rate_hz > 0 and clock_mode in {CLOCK_MODES}, "
                              f"got {rate_hz} and '{mode}'")
         self.lockstep = mode == "lockstep"
-        self._min_subscribers = int(self.get_parameter("lockstep_min_subscribers").value)
-        self._min_clock_subscribers = int(
-            self.get_parameter("lockstep_min_clock_subscribers").value)
         self.dt_s = 1.0 / rate_hz
         effects = [e for e in self.get_parameter("effects").value if e]
         params = load_plant_params(self.get_parameter("params_file").value or None)
@@ -108,9 +105,11 @@ class SimPlant(Node):
             # Time stands still until everyone expected listens, matched by DDS and not only
             # seen on the graph: no sample is lost at start-up (ipmc_driver.matching).
             self._start_gate = MatchGate(self.count_subscribers, [
-                (self.pub_disp, "/ipmc/displacement", max(1, self._min_subscribers)),
+                (self.pub_disp, "/ipmc/displacement",
+                 max(1, int(self.get_parameter("lockstep_min_subscribers").value))),
                 (self.pub_voltage, "/ipmc/voltage", 0),
-                (self.pub_clock, "/clock", self._min_clock_subscribers)],
+                (self.pub_clock, "/clock",
+                 int(self.get_parameter("lockstep_min_clock_subscribers").value))],
                 warn=self.get_logger().warn)
             self._t0 = 0.0
             self.create_timer(0.0005, self._on_lockstep_tick, clock=wall)
