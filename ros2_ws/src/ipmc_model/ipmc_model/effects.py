@@ -420,10 +420,18 @@ class AugmentedModel:
         nx = copy.deepcopy(narx)
         lags = nx.input_lags
         n_ch = 1 if v.ndim == 1 else v.shape[1]
-        if not np.isscalar(lags) and len(lags) < n_ch:
+        if n_ch > 1:
             # per-channel lags name the channels the template knew (the voltage, memory
-            # channels); a channel an effect appends (rate) gets the voltage's lags
-            nx.input_lags = tuple(lags) + (lags[0],) * (n_ch - len(lags))
+            # channels); the rate channel gets one lag: the rate now is the effect, and 12
+            # lags of it were a second copy of the voltage's window (a bigger model, not a
+            # physical block: docs/diagnose.md, "Rate dependence: one lag")
+            per = ([lags] * n_ch if np.isscalar(lags)
+                   else list(lags) + [lags[0]] * (n_ch - len(lags)))[:n_ch]
+            chans = [e.name for e in m._inputs() if e.name in CHANNEL_BLOCKS]
+            for i, name in enumerate(chans, start=1):
+                if name == "rate_dependence":
+                    per[i] = 1
+            nx.input_lags = tuple(int(x) for x in per)
         m.baseline = nx.fit(v, z)
         return m
 

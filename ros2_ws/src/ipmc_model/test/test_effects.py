@@ -192,14 +192,17 @@ def test_channel_blocks_act_after_the_other_input_effects(record, tmp_path):
         AugmentedModel(m.baseline, [Effect("memory", tau_s=1.0)], m.dt_s).fit_inverse(u, y)
     with pytest.raises(ValueError, match="tau_s must be > 0"):
         Effect("memory", tau_s=0.0)
-    # per-channel lags name the template's channels; a channel an effect appends gets the
-    # voltage's lags
+    # per-channel lags name the template's channels; the rate channel gets one lag (its value
+    # now is the effect; a window of it would double the voltage's window)
     nx = NarxModel(LSSVMRegressor(C=1000.0, sigma=3.0), input_lags=(12, 1), output_lags=0,
                    lag_step=5, max_rows=300)
     base = AugmentedModel.identify(nx, u, y, [Effect("memory", tau_s=1.0)], 1 / RATE)
     assert base.baseline.input_lags_ == (12, 1)
     m3 = base.refit(nx, u, y, base.effects + [Effect("rate_dependence", tau_s=0.2)])
-    assert m3.baseline.input_lags_ == (12, 1, 12)
+    assert m3.baseline.input_lags_ == (12, 1, 1)
+    nx.input_lags = 12
+    m4 = AugmentedModel.identify(nx, u, y, [Effect("rate_dependence", tau_s=0.2)], 1 / RATE)
+    assert m4.baseline.input_lags_ == (12, 1)
 
 
 def test_fit_creep_recovers_parameters_on_baseline_plus_creep():
