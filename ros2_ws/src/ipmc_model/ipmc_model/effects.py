@@ -22,7 +22,7 @@ delay          input    v_k = u_{k - d}, d = delay_s / dt (transport delay)
 dead_zone      input    v = sign(u) max(|u| - width_v, 0)
 asymmetry      input    v = u for u >= 0, negative_gain_ratio u for u < 0
 rate_dependence input   an extra input channel, the voltage rate du/dt (V/s) low-passed with
-                        tau_s: the bending depends on how fast the voltage changes
+                        tau_s, one lag: the bending depends on how fast the voltage changes
 memory         input    an extra input channel, the voltage low-passed with tau_s (V): the
                         polymer's back-relaxation remembers the input beyond the NARX's lag
                         window. A block of the baseline (``diagnose(memory_taus_s=...)``),
