@@ -426,12 +426,12 @@ class AugmentedModel:
             # lags of it were a second copy of the voltage's window (a bigger model, not a
             # physical block: docs/diagnose.md, "Rate dependence: one lag")
             per = ([lags] * n_ch if np.isscalar(lags)
-                   else list(lags) + [lags[0]] * (n_ch - len(lags)))[:n_ch]
+                   else list(lags) + [lags[0]] * (n_ch - len(lags)))
             chans = [e.name for e in m._inputs() if e.name in CHANNEL_BLOCKS]
             for i, name in enumerate(chans, start=1):
                 if name == "rate_dependence":
                     per[i] = 1
-            nx.input_lags = tuple(int(x) for x in per)
+            nx.input_lags = tuple(per)
         m.baseline = nx.fit(v, z)
         return m
 
