@@ -139,3 +139,49 @@ def test_lockstep_applies_the_command_stamped_for_each_sample(processes, rclpy_c
     for k, s in enumerate(answered[1:39], start=1):
         nxt = stamps[stamps.index(s) + 1]
         assert applied[nxt] == pytest.approx(0.05 * (k % 20)), (k, applied[nxt])
+
+
+def test_lockstep_time_waits_for_the_stamped_commander(processes, rclpy_context, spin):
+    """With ``lockstep_min_command_publishers`` the plant's time stands still, listeners matched,
+    until a ``/ipmc/command_stamped`` publisher has matched; then sample 0 waits for its command
+    like every other. (The ROS graph can list the controller late: a plant that read "nobody
+    commands me" from it once ran nine samples ahead of the controller in ``make test``.)"""
+    from geometry_msgs.msg import Vector3Stamped
+
+    processes.start_node("sim_plant", "sim_plant", {"clock_mode": "lockstep",
+                                                    "lockstep_timeout_s": 5.0,
+                                                    "lockstep_min_command_publishers": 1})
+    node = rclpy.create_node("commander_gate_test", context=rclpy_context)
+    try:
+        applied = {}   # sample stamp (ns) -> applied voltage (V)
+        pub = None
+
+        def stamp_ns(m):
+            return m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+
+        def on_voltage(m):
+            applied[stamp_ns(m)] = m.vector.x
+            if pub is not None and len(applied) <= 30:
+                answer = Vector3Stamped()
+                answer.header.stamp = m.header.stamp
+                answer.vector.x = 0.1 * len(applied)
+                pub.publish(answer)
+
+        node.create_subscription(Vector3Stamped, "/ipmc/voltage", on_voltage, SAMPLE_QOS)
+        node.create_subscription(PointStamped, "/ipmc/displacement", lambda m: None, SAMPLE_QOS)
+        assert spin(node, lambda: node.count_publishers("/ipmc/displacement") > 0, 20.0), \
+            "plant not up"
+        # Listeners are matched, but no commander: time must not start.
+        spin(node, lambda: False, 2.0)
+        assert applied == {}, f"time started without a commander: {sorted(applied)[:5]}"
+        pub = node.create_publisher(Vector3Stamped, "/ipmc/command_stamped", 10)
+        assert spin(node, lambda: len(applied) > 30, 30.0), f"only {len(applied)} samples"
+    finally:
+        node.destroy_node()
+    processes.stop("sim_plant")
+    assert "no command for the sample" not in processes.log("sim_plant")
+    stamps = sorted(applied)
+    assert stamps[0] == 0
+    # Sample k (from 0) was answered with 0.1 (k + 1) V, applied over sample k + 1.
+    for k in range(29):
+        assert applied[stamps[k + 1]] == pytest.approx(0.1 * (k + 1)), (k, applied)

@@ -155,6 +155,9 @@ def graph_specs(*, rig_port: str | None, lockstep: bool, model: str | None, mode
                                                    "sample_rate_hz": rate_hz}))
     else:
         plant = {"rate_hz": rate_hz, "clock_mode": "lockstep" if lockstep else "realtime"}
+        if lockstep:
+            # Time starts once the controller's stamped commands have matched (sim_plant).
+            plant["lockstep_min_command_publishers"] = 1
         if plant_effects:  # an empty list on the command line has no type: leave the default
             plant["effects"] = list(plant_effects)
         specs.append(NodeSpec("sim_plant", "sim_plant", plant))

@@ -29,7 +29,10 @@ def generate_launch_description():
         DeclareLaunchArgument("record", default_value="", description="bag folder to record"),
         Node(package="ipmc_driver", executable="sim_plant", name="sim_plant", parameters=[{
             "clock_mode": PythonExpression(["'lockstep' if '", lockstep,
-                                            "' == 'true' else 'realtime'"])}]),
+                                            "' == 'true' else 'realtime'"]),
+            # lock-step: time starts once the controller's stamped commands have matched.
+            "lockstep_min_command_publishers": PythonExpression(
+                ["1 if '", lockstep, "' == 'true' else 0"])}]),
         Node(package="ipmc_model", executable="model_server", name="model_server",
              condition=IfCondition(PythonExpression([
                  "'", LaunchConfiguration("model"), "' != '' or '",

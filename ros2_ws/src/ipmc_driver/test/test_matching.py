@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from ipmc_driver.matching import MatchGate
 
 
@@ -93,3 +95,45 @@ def test_the_wait_counts_from_when_the_minimum_is_met():
     assert not g.ready()
     clock.t = 25.5
     assert g.ready()
+
+
+class Sub:
+    def __init__(self, matched: int = 0) -> None:
+        self.matched = matched
+
+    def get_publisher_count(self) -> int:
+        return self.matched
+
+
+def test_a_required_publisher_holds_the_gate_though_the_graph_lists_none():
+    # The make-test failure: the plant's publishers had matched, the graph did not yet list the
+    # controller's command publisher, and the plant stepped on as if nobody commanded it.
+    disp, cmd = Pub(3), Sub(0)
+    publishers = {}
+    g = MatchGate(lambda topic: 3, [(disp, "/ipmc/displacement", 1)],
+                  inputs=[(cmd, "/ipmc/command_stamped", 1)],
+                  count_publishers=lambda topic: publishers.get(topic, 0), clock=Clock())
+    assert not g.ready()
+    assert g.short() == {"/ipmc/command_stamped": (0, 1)}
+    cmd.matched = 1          # DDS matched it; the graph still lists none
+    assert g.ready()
+
+
+def test_a_publisher_the_graph_lists_is_waited_for_then_waived():
+    clock = Clock()
+    cmd = Sub(0)
+    warnings: list[str] = []
+    g = MatchGate(lambda topic: 0, [], inputs=[(cmd, "/ipmc/command", 0)],
+                  count_publishers=lambda topic: 1, warn=warnings.append, clock=clock)
+    assert not g.ready()
+    clock.t = 5.1
+    assert g.ready()
+    assert len(warnings) == 1 and "/ipmc/command 0 of 1" in warnings[0]
+
+
+def test_inputs_need_the_graphs_publisher_count_and_one_endpoint_per_topic():
+    with pytest.raises(ValueError, match="count_publishers"):
+        MatchGate(lambda topic: 0, [], inputs=[(Sub(), "/x", 1)])
+    with pytest.raises(ValueError, match="one endpoint per topic"):
+        MatchGate(lambda topic: 0, [(Pub(), "/x", 0)], inputs=[(Sub(), "/x", 0)],
+                  count_publishers=lambda topic: 0)

@@ -15,6 +15,10 @@ Clocks (``clock_mode``):
   an older sample, or a second one for the same sample, can then never shift every later
   command by a sample (a bare Float64 cannot say which sample it answers). A sample stepped on
   without its command is logged as a warning ("lock-step: no command for the sample at ...").
+  Who publishes commands is read from the DDS matches of the plant's own subscriptions, not
+  from the ROS graph, which can lag them; time starts once ``lockstep_min_command_publishers``
+  publishers of ``/ipmc/command_stamped`` have matched (``ipmc track`` and ``ipmc bringup`` set
+  it), so the first samples cannot run ahead of a controller the graph does not list yet.
 """
 
 from __future__ import annotations
@@ -63,6 +67,11 @@ class SimPlant(Node):
         self.declare_parameter("lockstep_min_clock_subscribers", 0, ParameterDescriptor(
             description="lockstep: ... and this many to /clock (nodes on use_sim_time)",
             read_only=True))
+        self.declare_parameter("lockstep_min_command_publishers", 0, ParameterDescriptor(
+            description="lockstep: ... and this many publishers of /ipmc/command_stamped (a "
+                        "controller with trigger:=measurement) have matched, and every one the "
+                        "graph shows on it and on /ipmc/command (for at most 5 s)",
+            read_only=True))
         self.declare_parameter("params_file", "", ParameterDescriptor(
             description="plant parameter YAML ('' = shipped default)", read_only=True))
         self.declare_parameter("effects", [""], ParameterDescriptor(
@@ -93,12 +102,14 @@ class SimPlant(Node):
         self.pub_disp = self.create_publisher(PointStamped, "/ipmc/displacement", SAMPLE_QOS)
         self.pub_clock = (self.create_publisher(ClockMsg, "/clock", LATCHED_CLOCK_QOS)
                           if self.lockstep else None)
-        self.create_subscription(Float64, "/ipmc/command", self._on_command, COMMAND_QOS)
+        self.sub_command = self.create_subscription(Float64, "/ipmc/command", self._on_command,
+                                                    COMMAND_QOS)
         self._sample_ns = -1      # stamp of the last published sample
         self._answer_v: float | None = None  # the stamped command answering it, V
-        if self.lockstep:
+        self.sub_command_stamped = (
             self.create_subscription(Vector3Stamped, "/ipmc/command_stamped",
                                      self._on_command_stamped, COMMAND_QOS)
+            if self.lockstep else None)
 
         wall = Clock(clock_type=ClockType.STEADY_TIME)
         if self.lockstep:
@@ -110,7 +121,11 @@ class SimPlant(Node):
                 (self.pub_voltage, "/ipmc/voltage", 0),
                 (self.pub_clock, "/clock",
                  int(self.get_parameter("lockstep_min_clock_subscribers").value))],
-                warn=self.get_logger().warn)
+                inputs=[
+                    (self.sub_command_stamped, "/ipmc/command_stamped",
+                     int(self.get_parameter("lockstep_min_command_publishers").value)),
+                    (self.sub_command, "/ipmc/command", 0)],
+                count_publishers=self.count_publishers, warn=self.get_logger().warn)
             self._t0 = 0.0
             self.create_timer(0.0005, self._on_lockstep_tick, clock=wall)
         else:
@@ -145,7 +160,8 @@ class SimPlant(Node):
             return
         waited = time.monotonic() - self._sample_wall
         timeout = self.get_parameter("lockstep_timeout_s").value
-        if self.count_publishers("/ipmc/command_stamped") > 0:
+        # Matched publishers, not the graph's: the graph can list them late (see above).
+        if self.sub_command_stamped.get_publisher_count() > 0:
             if self._answer_v is not None:
                 self.command_v = self._answer_v
             elif waited < timeout:
@@ -155,7 +171,7 @@ class SimPlant(Node):
             self._publish_sample(*self.plant.step(self.command_v))
             return
         answered = self.command_count > self._count_at_sample
-        nobody = self.count_publishers("/ipmc/command") == 0
+        nobody = self.sub_command.get_publisher_count() == 0
         if answered or nobody or waited >= timeout:
             if not (answered or nobody):
                 self._note_unanswered(timeout)
