@@ -162,17 +162,26 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
                 if spec is not plant_spec:
                     graph.start(spec)
             need_ff = mode != "pid"
-            spin_until(lambda: node.count_subscribers("/ipmc/displacement") >= 3
+            # Every listener the run has, this probe included: a recorder missing from the
+            # graph at this point once matched 0.5 s of simulated time late and lost it.
+            names = {s.name for s in specs}
+            n_disp = 1 + len(names & {"controller", "model_server", "recorder"})
+            n_ref = 1 + len(names & {"controller", "model_server", "recorder"})
+            n_ff = len(names & {"controller", "recorder"})
+            spin_until(lambda: node.count_subscribers("/ipmc/displacement") >= n_disp
+                       and node.count_subscribers("/ipmc/reference") >= n_ref
                        and node.count_publishers("/ipmc/reference") >= 1
-                       and (not need_ff or node.count_publishers("/ipmc/feedforward") >= 1),
+                       and (not need_ff or (node.count_publishers("/ipmc/feedforward") >= 1
+                                            and node.count_subscribers("/ipmc/feedforward")
+                                            >= n_ff)),
                        30.0, "the graph's nodes to come up")
             # This probe sees every node; let the nodes see each other too (the controller
             # must know model_server is there to wait for its first feedforward).
             time.sleep(DISCOVERY_SETTLE_S)
-            # The plant's clock starts only when it has matched every listener this probe sees
-            # (the probe itself included): a late match would cut the start of the recording.
-            plant_spec.params["lockstep_min_subscribers"] = node.count_subscribers(
-                "/ipmc/displacement")
+            # The plant's clock starts only when it has matched every listener (DDS matches,
+            # not the graph's list): a late match would cut the start of the recording.
+            plant_spec.params["lockstep_min_subscribers"] = max(
+                n_disp, node.count_subscribers("/ipmc/displacement"))
             plant_spec.params["lockstep_min_clock_subscribers"] = node.count_subscribers("/clock")
             graph.start(plant_spec)
             print(f"graph up in {time.monotonic() - t_wall:.1f} s; running {duration_s:g} s "
