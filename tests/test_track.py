@@ -147,3 +147,58 @@ def test_track_graph_with_forward_inversion_agrees_with_in_process(forward_file,
     bag = Path(out.stderr.split("bag ")[-1].split()[0])
     log = (bag.parent / "logs" / "model_server.log").read_text()
     assert "feedforward forward-model inversion" in log, log[-2000:]
+
+
+def _children(pid: int) -> set[int]:
+    """PIDs of the live child processes of ``pid`` (from /proc)."""
+    out = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z":
+            out.add(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_track_graph_stopped_by_sigterm_stops_its_nodes(inverse_file, ros_env):
+    """A scheduler's or a CI runner's SIGTERM unwinds like Ctrl-C: every node is stopped (they
+    used to run on as orphans)."""
+    import signal
+    import time
+
+    proc = subprocess.Popen([str(VENV_BIN / "ipmc"), "track", "--model", str(inverse_file),
+                             "--reference", "sine", "--mode", "hybrid", "--seconds", "600",
+                             "--graph"], env=ros_env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    nodes: set[int] = set()
+    try:
+        deadline = time.monotonic() + 60.0
+        while len(nodes) < 5 and time.monotonic() < deadline and proc.poll() is None:
+            nodes = _children(proc.pid)   # reference, controller, model_server, recorder, plant
+            time.sleep(0.2)
+        assert len(nodes) == 5, f"the graph did not come up: children {nodes}"
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=60) == 128 + signal.SIGTERM
+        deadline = time.monotonic() + 10.0
+        while any(_alive(p) for p in nodes) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not [p for p in nodes if _alive(p)], "nodes left running after SIGTERM"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        for p in nodes:
+            if _alive(p):
+                import os
+
+                os.kill(p, signal.SIGKILL)

@@ -20,8 +20,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -155,6 +157,7 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
             executor.spin_once(timeout_sec=0.05)
 
     t_wall = time.monotonic()
+    old_sigterm = _sigterm_raises()
     try:
         with Graph(env, work / "logs") as graph:
             plant_spec: NodeSpec = next(s for s in specs if s.name == "sim_plant")
@@ -191,6 +194,8 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
             exits = graph.stop_all(order=["reference", "controller", "model_server",
                                           "sim_plant", "recorder"])
     finally:
+        if old_sigterm is not None:
+            signal.signal(signal.SIGTERM, old_sigterm)
         executor.remove_node(node)
         node.destroy_node()
         rclpy.try_shutdown(context=context)
@@ -223,6 +228,19 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     print(f"graph run: {len(stamps)} samples in {time.monotonic() - t_wall:.1f} s wall; "
           f"bag {bag}", file=log)
     return summary
+
+
+def _sigterm_raises():
+    """SIGTERM (a scheduler's or a test runner's stop) unwinds like Ctrl-C, so that the Graph
+    stops every node it started (killed outright, they ran on as orphans); returns the old
+    handler, or None off the main thread, where no handler can be set."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def on_sigterm(signum, frame):
+        raise SystemExit(128 + signum)
+
+    return signal.signal(signal.SIGTERM, on_sigterm)
 
 
 def _count_in_log(path: Path, text: str) -> int:
