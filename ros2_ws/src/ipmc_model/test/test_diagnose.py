@@ -247,6 +247,34 @@ def test_an_effect_below_the_noise_floor_is_not_material(tmp_path):
     assert "not material" in drift["text"]
 
 
+@pytest.mark.parametrize("effect", ["dead_zone", "none"])
+def test_report_names_an_effect_in_the_data_that_the_baseline_already_represents(
+        tmp_path, effect):
+    """`ipmc simulate` mixed 1.5 V, seed 4 (not used to design the scan), 120 s at 50 Hz: the
+    dead-zone scan names 0.3 V, the baseline refitted through it gains nothing, so nothing is
+    accepted, and the report says the data carry a dead zone; the clean record says nothing."""
+    from ipmc_driver.simulate_cli import main as simulate
+
+    csv = tmp_path / "mixed.csv"
+    assert simulate(["--input", "mixed", "--amplitude", "1.5", "--seconds", "120",
+                     "--rate-hz", "50", "--seed", "4", "--out", str(csv)]
+                    + (["--effect", effect] if effect != "none" else [])) == 0
+    out = tmp_path / "report"
+    assert main(["--data", str(csv), "--report", str(out), "--seed", "0"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary) == KEYS
+    assert summary["effects_found"] == []
+    report = (out / "report.md").read_text()
+    in_data = [c for c in summary["candidates"] if c["evidence"].get("in_data")]
+    if effect == "none":
+        assert in_data == [] and "not missing from the model" not in report
+        return
+    assert {c["effect"] for c in in_data} == {"dead_zone"}
+    assert in_data[0]["evidence"]["params"]["width_v"] == pytest.approx(0.3, abs=0.03)
+    assert not in_data[0]["accepted"]
+    assert "In the data but not missing from the model: **dead_zone**" in report
+
+
 def test_memory_channels_are_not_for_a_given_model(day1_model):
     t, u, y = _mixed_record({}, seed=5, seconds=20.0)
     with pytest.raises(ValueError, match="memory channels"):
