@@ -162,3 +162,43 @@ def test_sigint_stops_every_node_within_2s(processes, rclpy_context, spin, inver
     # ended model_server with "RuntimeError: Unable to convert call argument" and status 1.
     assert processes.returncodes == {n: 0 for n in names}, {
         n: processes.log(n)[-600:] for n, c in processes.returncodes.items() if c != 0}
+
+
+def test_lockstep_reference_holds_its_first_samples_for_min_subscribers(processes,
+                                                                         rclpy_context, spin):
+    """On use_sim_time the reference's first burst waits until /ipmc/reference has matched
+    ``min_subscribers`` subscriptions, even when the graph lists fewer (it can list a
+    subscription late: model_server once missed the first three references and a lock-step
+    run stalled 5 s at sample 0)."""
+    from geometry_msgs.msg import PointStamped
+    from rosgraph_msgs.msg import Clock
+
+    from ipmc_driver.qos import LATCHED_CLOCK_QOS, SAMPLE_QOS
+
+    processes.start_node("reference", "reference", {"kind": "sine", "preview_s": 0.02,
+                                                    "use_sim_time": "true",
+                                                    "min_subscribers": 2})
+    node = rclpy.create_node("reference_gate_test", context=rclpy_context)
+    try:
+        first, second = [], []
+
+        def stamp_ns(m):
+            return m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+
+        node.create_subscription(PointStamped, "/ipmc/reference",
+                                 lambda m: first.append(stamp_ns(m)), SAMPLE_QOS)
+        clock = node.create_publisher(Clock, "/clock", LATCHED_CLOCK_QOS)
+        clock.publish(Clock())   # t = 0
+        assert spin(node, lambda: node.count_publishers("/ipmc/reference") > 0, 20.0), \
+            "reference not up"
+        # One listener of the two required: the burst stays held.
+        spin(node, lambda: False, 2.0)
+        assert first == [], f"published before min_subscribers matched: {first[:5]}"
+        node.create_subscription(PointStamped, "/ipmc/reference",
+                                 lambda m: second.append(stamp_ns(m)), SAMPLE_QOS)
+        assert spin(node, lambda: len(first) >= 3 and len(second) >= 3, 20.0), (first, second)
+    finally:
+        node.destroy_node()
+    processes.stop("reference")
+    # Both volatile listeners got the burst from t = 0: 0, 10, 20 ms (preview 0.02 s).
+    assert first[:3] == second[:3] == [0, 10_000_000, 20_000_000]

@@ -71,3 +71,21 @@ def test_bringup_serves_each_kind_of_feedforward_model_as_model_server_expects(t
     server = next(s for s in specs if s.name == "model_server")
     assert server.params["feedforward"] == "forward-inversion"
     assert server.params["model_file"] == str(fwd.resolve())
+
+
+@pytest.mark.parametrize("model,record,listeners", [("m.json", "bag", 3), (None, None, 1)])
+def test_lockstep_bringup_waits_for_every_listener_it_starts(model, record, listeners):
+    """In lock-step, time and the reference's first samples wait until every node started
+    that listens (controller, model_server, recorder) has matched, not only those the graph
+    lists by then; the plant also waits for the controller's stamped commands."""
+    specs = {s.name: s.params for s in graph_specs(
+        rig_port=None, lockstep=True, model=model, mode="hybrid", reference="sine",
+        plant_effects=[], record=record)}
+    assert specs["reference"]["min_subscribers"] == listeners
+    assert specs["sim_plant"]["lockstep_min_subscribers"] == listeners
+    assert specs["sim_plant"]["lockstep_min_command_publishers"] == 1
+    realtime = {s.name: s.params for s in graph_specs(
+        rig_port=None, lockstep=False, model=model, mode="hybrid", reference="sine",
+        plant_effects=[], record=record)}
+    assert "min_subscribers" not in realtime["reference"]
+    assert "lockstep_min_command_publishers" not in realtime["sim_plant"]

@@ -129,6 +129,11 @@ def feedforward_server_params(model: str) -> dict:
     return {"inverse_model_file": path}
 
 
+#: Nodes of the graph that subscribe /ipmc/reference and /ipmc/displacement: in lock-step,
+#: time and the reference wait until all those started have matched.
+LISTENERS = ("controller", "model_server", "recorder")
+
+
 def graph_specs(*, rig_port: str | None, lockstep: bool, model: str | None, mode: str,
                 reference: str, plant_effects: list[str], record: str | None,
                 rate_hz: float = 100.0) -> list[NodeSpec]:
@@ -148,8 +153,12 @@ def graph_specs(*, rig_port: str | None, lockstep: bool, model: str | None, mode
     specs.append(NodeSpec("controller", "controller", {
         **common, "mode": mode, "rate_hz": rate_hz,
         "trigger": "measurement" if sim_time else "timer"}))
-    specs.append(NodeSpec("reference", "reference", {
-        **common, "kind": reference, "rate_hz": rate_hz, "preview_s": 2.0 / rate_hz}))
+    listeners = sum(s.name in LISTENERS for s in specs)
+    ref = {**common, "kind": reference, "rate_hz": rate_hz, "preview_s": 2.0 / rate_hz}
+    if sim_time:
+        # the first samples wait until every listener started here has matched (reference)
+        ref["min_subscribers"] = listeners
+    specs.append(NodeSpec("reference", "reference", ref))
     if rig_port:
         specs.append(NodeSpec("driver", "driver", {"port": rig_port,
                                                    "sample_rate_hz": rate_hz}))
@@ -158,6 +167,7 @@ def graph_specs(*, rig_port: str | None, lockstep: bool, model: str | None, mode
         if lockstep:
             # Time starts once the controller's stamped commands have matched (sim_plant).
             plant["lockstep_min_command_publishers"] = 1
+            plant["lockstep_min_subscribers"] = max(1, listeners)
         if plant_effects:  # an empty list on the command line has no type: leave the default
             plant["effects"] = list(plant_effects)
         specs.append(NodeSpec("sim_plant", "sim_plant", plant))

@@ -105,7 +105,7 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
         stamp_ns,
     )
 
-    from .bringup import Graph, NodeSpec, graph_specs
+    from .bringup import LISTENERS, Graph, NodeSpec, graph_specs
 
     env = dict(os.environ)
     env.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
@@ -119,6 +119,7 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     for spec in specs:
         if spec.name == "reference":
             spec.params.update(REFERENCE_PARAMS[reference])
+            spec.params["min_subscribers"] += 1    # this probe listens too
         # Lock-step means every sample waits for its command, and every command for its inputs:
         # on a loaded machine a process can stall for more than the defaults (0.2 s, 0.05 s),
         # and a plant stepping on without the command is no longer the in-process loop.
@@ -168,11 +169,10 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
             # Every listener the run has, this probe included: a recorder missing from the
             # graph at this point once matched 0.5 s of simulated time late and lost it.
             names = {s.name for s in specs}
-            n_disp = 1 + len(names & {"controller", "model_server", "recorder"})
-            n_ref = 1 + len(names & {"controller", "model_server", "recorder"})
+            n_listen = 1 + len(names & set(LISTENERS))
             n_ff = len(names & {"controller", "recorder"})
-            spin_until(lambda: node.count_subscribers("/ipmc/displacement") >= n_disp
-                       and node.count_subscribers("/ipmc/reference") >= n_ref
+            spin_until(lambda: node.count_subscribers("/ipmc/displacement") >= n_listen
+                       and node.count_subscribers("/ipmc/reference") >= n_listen
                        and node.count_publishers("/ipmc/reference") >= 1
                        and (not need_ff or (node.count_publishers("/ipmc/feedforward") >= 1
                                             and node.count_subscribers("/ipmc/feedforward")
@@ -184,7 +184,7 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
             # The plant's clock starts only when it has matched every listener (DDS matches,
             # not the graph's list): a late match would cut the start of the recording.
             plant_spec.params["lockstep_min_subscribers"] = max(
-                n_disp, node.count_subscribers("/ipmc/displacement"))
+                n_listen, node.count_subscribers("/ipmc/displacement"))
             plant_spec.params["lockstep_min_clock_subscribers"] = node.count_subscribers("/clock")
             graph.start(plant_spec)
             print(f"graph up in {time.monotonic() - t_wall:.1f} s; running {duration_s:g} s "

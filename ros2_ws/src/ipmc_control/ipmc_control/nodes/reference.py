@@ -5,8 +5,10 @@ m/s (analytic for the smooth generators, 0 on a step train's levels; the control
 derivative acts on the error with it) (frame ``ipmc_clamp``), published
 every ``1/rate_hz`` s of the node's clock (ROS time: with ``use_sim_time:=true`` it follows
 ``/clock``, and also ticks on each ``/clock`` message, so that it starts with a lock-step
-plant's first sample; that first tick waits, at most 5 s of wall time, until every subscription
-the graph shows on ``/ipmc/reference`` has matched, so none misses the first samples). The
+plant's first sample; that first tick waits until ``/ipmc/reference`` has matched at least
+``min_subscribers`` subscriptions, and, at most 5 s of wall time, every one the graph shows, so
+none misses the first samples: the graph can list a subscription late, so ``ipmc track`` and
+``ipmc bringup --lockstep`` set ``min_subscribers`` to the listeners they start). The
 generator (``ipmc_control.references``) is chosen by ``kind``:
 
 - ``constant``: ``value_mm``;
@@ -92,6 +94,10 @@ class ReferenceNode(Node):
             description="publish the reference this far ahead of the clock, s (>= 0): a "
                         "trajectory is known in advance, and feedforward needs the next sample",
             read_only=True))
+        self.declare_parameter("min_subscribers", 0, ParameterDescriptor(
+            description="use_sim_time: the first samples wait until /ipmc/reference has matched "
+                        "this many subscriptions (and every one the graph shows, at most 5 s)",
+            read_only=True))
         self.declare_parameter("kind", "sine", ParameterDescriptor(
             description=" | ".join(KINDS)))
         for name, (default, text) in GENERATOR_PARAMS.items():
@@ -124,7 +130,9 @@ class ReferenceNode(Node):
             # a recorder) loses it and a lock-step controller waits for feedforwards that
             # never come. While held, a wall timer retries (the simulated clock waits too).
             self._start_gate: MatchGate | None = MatchGate(
-                self.count_subscribers, [(self.pub, "/ipmc/reference", 0)],
+                self.count_subscribers,
+                [(self.pub, "/ipmc/reference",
+                  int(self.get_parameter("min_subscribers").value))],
                 warn=self.get_logger().warn)
         else:
             self._start_gate = None
