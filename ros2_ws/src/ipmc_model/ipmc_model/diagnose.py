@@ -213,9 +213,9 @@ class Diagnosis:
 
     def in_data(self) -> list[Candidate]:
         """Effects a refit-free test (:data:`IN_DATA_EFFECTS`: the dead-zone width scan) finds
-        in the data that were not accepted: the baseline already represents them, adding
-        them does not lower the held-out error. The first candidate of each (evidence
-        ``in_data`` True)."""
+        in the data that were not accepted: adding them does not lower the held-out error
+        enough (:data:`IN_DATA_TEXT`). The first candidate of each (evidence ``in_data``
+        True)."""
         out: dict[str, Candidate] = {}
         for c in self.candidates:
             if (c.evidence.get("in_data") and c.effect not in self.effects_found
@@ -658,8 +658,8 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
     for c in evaluated:
         c.model = None if not c.accepted else c.model
     d = Diagnosis(before, current, rmse_before, rmse_cur, evaluated, found, ana_before,
-                     ana_cur, t, u, y, cut, tuning, threshold, time.perf_counter() - t0_wall,
-                     notes=[shift["text"]])
+                  ana_cur, t, u, y, cut, tuning, threshold, time.perf_counter() - t0_wall,
+                  notes=[shift["text"]])
     for c in d.in_data():
         say(f"in the data but not missing from the model: {c.effect} "
             f"({c.evidence['describe']}): {IN_DATA_TEXT}")
@@ -737,8 +737,8 @@ def _markdown(d: Diagnosis, s: dict, figs: list[str], label: str) -> str:
     lines += ["", f"Effects found: **{', '.join(s['effects_found']) or 'none'}**.", ""]
     for c in d.in_data():
         lines += [f"In the data but not missing from the model: **{c.effect}** "
-                  f"({c.evidence['describe']}; {c.evidence['text'].split('; held-out')[0]}). "
-                  f"{IN_DATA_TEXT[0].upper()}{IN_DATA_TEXT[1:]}.", ""]
+                  f"({c.evidence['describe']}; refit-free test p = "
+                  f"{c.evidence['test']['p_value']:.2g}): {IN_DATA_TEXT}.", ""]
     lines += [f"Note: {n}." for n in d.notes] + ([""] if d.notes else [])
     if d.model_after.effects:
         lines += ["## Fitted effects (physical units)", "", "| effect | parameter | value | "
