@@ -105,7 +105,7 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
         stamp_ns,
     )
 
-    from .bringup import LISTENERS, Graph, NodeSpec, graph_specs
+    from .bringup import Graph, NodeSpec, graph_specs
 
     env = dict(os.environ)
     env.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
@@ -125,6 +125,7 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
         # and a plant stepping on without the command is no longer the in-process loop.
         if spec.name == "sim_plant":
             spec.params["lockstep_timeout_s"] = LOCKSTEP_WAIT_S
+            spec.params["lockstep_min_subscribers"] += 1    # this probe listens too
         if spec.name == "controller":
             spec.params["pair_wait_s"] = LOCKSTEP_WAIT_S
     timeout_s = timeout_s or 90.0 + 3.0 * duration_s
@@ -166,11 +167,11 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
                 if spec is not plant_spec:
                     graph.start(spec)
             need_ff = mode != "pid"
-            # Every listener the run has, this probe included: a recorder missing from the
-            # graph at this point once matched 0.5 s of simulated time late and lost it.
-            names = {s.name for s in specs}
-            n_listen = 1 + len(names & set(LISTENERS))
-            n_ff = len(names & {"controller", "recorder"})
+            # Every listener the run has, this probe included (graph_specs counts them): a
+            # recorder missing from the graph here once matched 0.5 s of simulated time late
+            # and lost it.
+            n_listen = plant_spec.params["lockstep_min_subscribers"]
+            n_ff = len({s.name for s in specs} & {"controller", "recorder"})
             spin_until(lambda: node.count_subscribers("/ipmc/displacement") >= n_listen
                        and node.count_subscribers("/ipmc/reference") >= n_listen
                        and node.count_publishers("/ipmc/reference") >= 1
@@ -182,9 +183,8 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
             # must know model_server is there to wait for its first feedforward).
             time.sleep(DISCOVERY_SETTLE_S)
             # The plant's clock starts only when it has matched every listener (DDS matches,
-            # not the graph's list): a late match would cut the start of the recording.
-            plant_spec.params["lockstep_min_subscribers"] = max(
-                n_listen, node.count_subscribers("/ipmc/displacement"))
+            # not the graph's list: lockstep_min_subscribers): a late match would cut the
+            # start of the recording.
             plant_spec.params["lockstep_min_clock_subscribers"] = node.count_subscribers("/clock")
             graph.start(plant_spec)
             print(f"graph up in {time.monotonic() - t_wall:.1f} s; running {duration_s:g} s "
