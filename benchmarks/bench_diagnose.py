@@ -3,12 +3,12 @@ third-party data (Bouc-Wen, piezo). Prints figures; not part of the pass/fail su
 
     .venv/bin/python benchmarks/bench_diagnose.py [timing|effects [LABEL_PREFIX...]|thirdparty|all]
     .venv/bin/python benchmarks/bench_diagnose.py creepfit [SEED...]
-    .venv/bin/python benchmarks/bench_diagnose.py stale [SEED...]
+    .venv/bin/python benchmarks/bench_diagnose.py stale [SEED...] [LABEL_PREFIX...]
 
 ``stale``: a model fitted on a clean day (the diagnosis's own baseline on 120 s of the mixed
 3 V input) given with ``--model`` to the record of a later day (seed + 100) on which the plant
-has a dead zone, a saturation or a drift (or nothing): what changed since, fitted around the
-model (seeds 0, 1 by default; they were used to design it).
+has a dead zone, a saturation, a drift, an asymmetry or a rate dependence (or nothing): what
+changed since, fitted around the model (seeds 0, 1 by default; they were used to design it).
 
 ``creepfit``: the creep candidate alone (``diagnose(candidates=("creep",))``, full tuning) on
 ``creep_hold_experiment``'s kind of record (300 s of random 2.5 V steps held 0.5-5 s, 100 Hz),
@@ -86,6 +86,8 @@ CASES = [
     ("dead_zone default 0.3 V", {"dead_zone": {}}, 90.0),
     ("saturation 1.5 mm", {"saturation": {"limit_mm": 1.5}}, 90.0),
     ("saturation default 3 mm", {"saturation": {}}, 90.0),
+    ("asymmetry default 0.7", {"asymmetry": {}}, 90.0),
+    ("rate_dependence default 0.1 mm/(V/s)", {"rate_dependence": {}}, 90.0),
     # input with true holds (the sine off during every other step): creep evidence in time
     ("holds: none", {}, 90.0, True),
     ("holds: creep tau 12 s, -0.6 mm/V, 120 s", {"creep": {"tau_s": 12.0,
@@ -152,11 +154,16 @@ STALE_CHANGES = (
     ("saturation 2.5 mm", {"saturation": {"limit_mm": 2.5}}),
     ("drift 0.1 /min, 0.3 mm/min", {"drift": {"gain_loss_per_min": 0.1,
                                               "offset_mm_per_min": 0.3}}),
+    ("asymmetry 0.7", {"asymmetry": {"negative_gain_ratio": 0.7}}),
+    ("asymmetry 0.8", {"asymmetry": {"negative_gain_ratio": 0.8}}),
+    ("rate 0.1 mm/(V/s)", {"rate_dependence": {"gain_mm_per_v_per_s": 0.1}}),
+    ("rate 0.05 mm/(V/s)", {"rate_dependence": {"gain_mm_per_v_per_s": 0.05}}),
 )
 
 
-def stale(tmp, seeds=(0, 1), amplitude=3.0):
-    """A model from a clean day, given with --model, on a later day's record with a change."""
+def stale(tmp, seeds=(0, 1), amplitude=3.0, only=None):
+    """A model from a clean day, given with --model, on a later day's record with a change
+    (``only``: labels starting with one of these prefixes; "none" always runs)."""
     from ipmc_driver.signals import mixed
 
     print(f"mixed input {amplitude} V, 120 s at 50 Hz; day 1 clean (seed S), day 2 seed S + 100")
@@ -170,6 +177,8 @@ def stale(tmp, seeds=(0, 1), amplitude=3.0):
 
         _, _, s1 = run_cli(record({}, seed, f"day1_{seed}"), Path(tmp) / f"day1_{seed}")
         for label, fx in STALE_CHANGES:
+            if only and label != "none" and not label.startswith(only):
+                continue
             name = f"day2_{seed}_{label.replace(' ', '_').replace('/', '')}"
             code, sec, s = run_cli(record(fx, seed + 100, name), Path(tmp) / name,
                                    model=s1["model_before"])
@@ -215,6 +224,8 @@ if __name__ == "__main__":
         if what in ("thirdparty", "all"):
             thirdparty(tmp)
         if what == "stale":
-            stale(tmp, tuple(int(a) for a in sys.argv[2:]) or (0, 1))
+            args = sys.argv[2:]
+            stale(tmp, tuple(int(a) for a in args if a.isdigit()) or (0, 1),
+                  only=tuple(a for a in args if not a.isdigit()) or None)
         if what == "creepfit":
             creepfit(tuple(int(a) for a in sys.argv[2:]) or (0, 1, 3))

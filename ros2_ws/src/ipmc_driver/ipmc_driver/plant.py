@@ -16,10 +16,14 @@ Signal chain, one sample period ``dt_s`` integrated in ``substeps`` explicit ste
    is mixed with ``s`` (``hyst_weight``).
 6. Asymmetric bending: ``z > 0`` bends with gain ``gain_pos_mm_per_v`` and soft saturation at
    ``sat_pos_mm``; ``z < 0`` bends with ``gain_neg_mm_per_v * (1 + stiffen_neg_per_v |z|)``
-   (negative voltages bend further, as in Table 1).
-7. Optional ``creep`` (slow relaxation with ``tau_s`` of seconds to a minute), ``drift`` (gain
+   (negative voltages bend further, as in Table 1). Optional ``asymmetry`` scales the negative
+   bending by ``negative_gain_ratio`` (the electrode on one face cracked or thinner).
+7. Optional ``rate_dependence``: a bending that follows the ionic current, not the charge
+   (water dragged with the migrating cations): ``gain_mm_per_v_per_s * dv_c/dt``. The loop
+   widens with frequency and a step overshoots while the double layer charges.
+8. Optional ``creep`` (slow relaxation with ``tau_s`` of seconds to a minute), ``drift`` (gain
    loss and offset over minutes: dehydration), ``saturation`` (symmetric soft limit).
-8. Laser sensor: Gaussian noise ``noise_std_mm`` and quantisation ``resolution_mm``.
+9. Laser sensor: Gaussian noise ``noise_std_mm`` and quantisation ``resolution_mm``.
 
 The default parameters (``data/plant_default.yaml``) were found by ``scripts/calibrate_plant.py``
 so that the paper's nine sine conditions reproduce its Table 1 within 20 %.
@@ -38,7 +42,8 @@ import yaml
 
 from .validation import as_signal
 
-EFFECTS = ("creep", "drift", "delay", "dead_zone", "saturation")
+EFFECTS = ("creep", "drift", "delay", "dead_zone", "saturation", "asymmetry",
+           "rate_dependence")
 
 # Parameters every plant file must define; values are floats in the unit of the suffix.
 _REQUIRED = (
@@ -160,7 +165,10 @@ class IpmcPlant:
         if z >= 0.0:
             sat = p["sat_pos_mm"]
             return sat * math.tanh(p["gain_pos_mm_per_v"] * z / sat)
-        return p["gain_neg_mm_per_v"] * z * (1.0 + p["stiffen_neg_per_v"] * -z)
+        y = p["gain_neg_mm_per_v"] * z * (1.0 + p["stiffen_neg_per_v"] * -z)
+        if "asymmetry" in self.effects:
+            y *= self.effects["asymmetry"]["negative_gain_ratio"]
+        return y
 
     def step(self, u_v: float) -> tuple[float, float]:
         """Apply ``u_v`` for one sample period; return (applied voltage V, measured tip mm)."""
@@ -188,6 +196,7 @@ class IpmcPlant:
         tau_r, beta_r, grow = p["tau_relax_s"], p["relax_fraction"], p["relax_growth_per_v"]
         a, b, g = p["bw_alpha"], p["bw_beta_per_v"], p["bw_gamma_per_v"]
         v, r, h, s_prev = self._v, self._r, self._h, self._s_prev
+        v_start = v
         for _ in range(self.substeps):
             # Current-limited charging: linear for small errors, slew-limited for large ones.
             v += h_dt * slew * math.tanh((u_eff - v) / (tau_c * slew))
@@ -199,6 +208,9 @@ class IpmcPlant:
         self._v, self._r, self._h, self._s_prev = v, r, h, s_prev
         w = p["hyst_weight"]
         y = self._bend_mm((1.0 - w) * s_prev + w * h)
+        if "rate_dependence" in fx:
+            # the charging current over this sample, as the mean rate of the double layer
+            y += fx["rate_dependence"]["gain_mm_per_v_per_s"] * (v - v_start) / self.dt_s
 
         t = self.t_s
         if "creep" in fx:

@@ -124,8 +124,37 @@ def test_saturation_bounds_the_tip():
     assert np.abs(hold((), u_v=-3.0, seconds=5.0)).max() > 3.0
 
 
+def test_asymmetry_weakens_only_the_negative_bending():
+    base_neg, base_pos = hold(()), hold((), u_v=2.0)
+    weak_neg = hold({"asymmetry": {"negative_gain_ratio": 0.6}})
+    weak_pos = hold({"asymmetry": {"negative_gain_ratio": 0.6}}, u_v=2.0)
+    assert base_neg.min() < -1.0
+    np.testing.assert_allclose(weak_neg, 0.6 * base_neg, atol=1e-12)
+    np.testing.assert_array_equal(weak_pos, base_pos)
+
+
+def test_rate_dependence_follows_the_charging_current_and_vanishes_at_rest():
+    k = 0.1  # mm per V/s
+    u = np.r_[np.zeros(100), np.full(1500, 2.0)]  # a 2 V step at 1 s, held 15 s
+    base = IpmcPlant().run(u).y_true_mm
+    fast = IpmcPlant(effects={"rate_dependence": {"gain_mm_per_v_per_s": k}}).run(u).y_true_mm
+    extra = fast - base
+    # the extra bending is k dv_c/dt: its time integral is k times the charged voltage (2 V)
+    assert np.sum(extra) * 0.01 == pytest.approx(k * 2.0, rel=1e-3)
+    assert extra[100:140].max() > 0.5  # the step overshoots while the double layer charges
+    assert abs(extra[-100:]).max() < 1e-3  # charged: no current, no extra bending
+    # the loop widens with frequency: the extra bending grows with the input's rate
+    _, slow = sine(1.0, 0.1, 20.0)
+    _, quick = sine(1.0, 1.0, 20.0)
+    fx = {"rate_dependence": {"gain_mm_per_v_per_s": k}}
+    gap = [np.std(IpmcPlant(effects=fx).run(x).y_true_mm - IpmcPlant().run(x).y_true_mm)
+           for x in (slow, quick)]
+    assert gap[1] > 3 * gap[0]  # 10 x the rate, less the charging lag at 1 Hz
+
+
 def test_effect_names_are_the_documented_ones():
-    assert EFFECTS == ("creep", "drift", "delay", "dead_zone", "saturation")
+    assert EFFECTS == ("creep", "drift", "delay", "dead_zone", "saturation", "asymmetry",
+                       "rate_dependence")
     assert set(load_plant_params()["effects"]) == set(EFFECTS)
 
 
