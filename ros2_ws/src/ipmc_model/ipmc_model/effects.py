@@ -23,6 +23,9 @@ dead_zone      input    v = sign(u) max(|u| - width_v, 0)
 asymmetry      input    v = u for u >= 0, negative_gain_ratio u for u < 0
 rate_dependence input   an extra input channel, the voltage rate du/dt (V/s) low-passed with
                         tau_s, one lag: the bending depends on how fast the voltage changes
+rate_dependence output  (with gain_mm_per_v_per_s: the block around a given model) y = z + g rho,
+                        rho_k = a rho_{k-1} + (1 - a) (u_{k-1} - u_{k-2}) / dt: a bending that
+                        follows the ionic current (the low-passed voltage rate), g mm per V/s
 memory         input    an extra input channel, the voltage low-passed with tau_s (V): the
                         polymer's back-relaxation remembers the input beyond the NARX's lag
                         window. A block of the baseline (``diagnose(memory_taus_s=...)``),
@@ -45,16 +48,18 @@ one-dimensional parameter grid, scored by free-run RMSE on an internal validatio
 last quarter) of the fit data.
 
 Around a model kept as it is (a model fitted on other data, given to the diagnosis),
-:func:`fit_frozen_effect` fits drift, delay, dead zone, asymmetry or saturation as a block
-without refitting anything: the block is what changed since the model was fitted.
+:func:`fit_frozen_effect` fits drift, delay, dead zone, asymmetry, saturation or rate
+dependence (its output form) as a block without refitting anything: the block is what changed
+since the model was fitted.
 
 Inversion (feedforward control): :meth:`AugmentedModel.inverse_stepper` wraps an inverse NARX
 fitted in the baseline's space (:meth:`AugmentedModel.fit_inverse`). For creep, at each step
 the creep state c_k (known from the voltages already applied) is subtracted from the desired
 displacement, the baseline inverse gives the voltage for the rest, and the applied voltage
 then advances the creep state. Drift and saturation are inverted the same way, dead zone and
-asymmetry by their inverse static maps; delay and rate dependence are not invertible step by
-step (a delay needs reference preview) and raise ``ValueError``.
+asymmetry by their inverse static maps, the output form of rate dependence like creep (its
+state is known from the voltages already applied); delay and the rate and memory channels are
+not invertible step by step (a delay needs reference preview) and raise ``ValueError``.
 """
 
 from __future__ import annotations
@@ -87,7 +92,7 @@ INPUT_EFFECTS = ("delay", "dead_zone", "asymmetry", "rate_dependence")
 REFIT_EFFECTS = ("delay", "dead_zone", "asymmetry", "rate_dependence", "saturation")
 #: Blocks that can also be fitted around a model kept as it is (a model given to the
 #: diagnosis, fitted on other data): :func:`fit_frozen_effect`.
-FROZEN_EFFECTS = ("drift", "delay", "dead_zone", "asymmetry", "saturation")
+FROZEN_EFFECTS = ("drift", "delay", "dead_zone", "asymmetry", "saturation", "rate_dependence")
 #: Points of the frozen fits' parameter grids (then refined between the best one's neighbours).
 FROZEN_GRID_POINTS = 25
 
@@ -95,7 +100,7 @@ FROZEN_GRID_POINTS = 25
 PARAM_UNITS = {
     "tau_s": "s", "gain_mm_per_v": "mm/V", "gain_loss_per_min": "1/min",
     "offset_mm_per_min": "mm/min", "delay_s": "s", "width_v": "V",
-    "negative_gain_ratio": "1", "limit_mm": "mm",
+    "negative_gain_ratio": "1", "limit_mm": "mm", "gain_mm_per_v_per_s": "mm/(V/s)",
 }
 
 AUGMENTED_FORMAT = "ipmc-ros-augmented-model"
@@ -124,15 +129,20 @@ class Effect:
         "rate_dependence": ("tau_s",),
         "memory": ("tau_s",),
     }
+    # a second parameter set: rate dependence as an output block around a given model
+    _OUTPUT_KEYS = {"rate_dependence": ("tau_s", "gain_mm_per_v_per_s")}
 
     def __init__(self, name: str, **params):
         if name not in EFFECT_NAMES + BASELINE_BLOCKS:
             raise ValueError(f"unknown effect {name!r}; known: "
                              f"{', '.join(EFFECT_NAMES + BASELINE_BLOCKS)}")
         keys = self._KEYS[name]
-        if set(params) != set(keys):
-            raise ValueError(f"effect {name!r} needs parameters {list(keys)}, "
-                             f"got {sorted(params)}")
+        alt = self._OUTPUT_KEYS.get(name)
+        if alt is not None and set(params) == set(alt):
+            keys = alt
+        elif set(params) != set(keys):
+            need = f"{list(keys)}" + (f" or {list(alt)}" if alt else "")
+            raise ValueError(f"effect {name!r} needs parameters {need}, got {sorted(params)}")
         self.name = name
         self.params = {k: float(params[k]) for k in keys}
         for k, v in self.params.items():
@@ -150,7 +160,17 @@ class Effect:
     @property
     def side(self) -> str:
         """``"input"`` or ``"output"``."""
-        return "output" if self.name in OUTPUT_EFFECTS else "input"
+        return "output" if self.name in OUTPUT_EFFECTS or self.is_rate_output else "input"
+
+    @property
+    def is_rate_output(self) -> bool:
+        """Rate dependence as an output block (``gain_mm_per_v_per_s`` given), not a channel."""
+        return "gain_mm_per_v_per_s" in self.params
+
+    @property
+    def is_channel(self) -> bool:
+        """An extra input channel of the baseline (the rate or memory channel)."""
+        return self.name in CHANNEL_BLOCKS and not self.is_rate_output
 
     def describe(self) -> str:
         """Parameters with units, e.g. ``tau_s = 31.2 s, gain_mm_per_v = -0.29 mm/V``."""
@@ -191,11 +211,21 @@ class Effect:
         a = math.exp(-dt_s / p["tau_s"])
         return lfilter([0.0, (1.0 - a) * p["gain_mm_per_v"]], [1.0, -a], u)
 
+    def rate_state(self, u: np.ndarray, dt_s: float) -> np.ndarray:
+        """Rate output block g rho_k (mm) for every k from the input (N,) (causal: rho_k uses
+        u up to k - 1; the rate before the record is 0)."""
+        p = self.params
+        a = math.exp(-dt_s / p["tau_s"])
+        du = np.diff(u, prepend=u[:1]) / dt_s
+        return lfilter([0.0, (1.0 - a) * p["gain_mm_per_v_per_s"]], [1.0, -a], du)
+
     def forward(self, z, u, t_s, dt_s):
         """Output effect: baseline output z (mm) -> displacement y (mm), whole record."""
         p = self.params
         if self.name == "creep":
             return z + self.creep_state(u, dt_s)
+        if self.name == "rate_dependence":
+            return z + self.rate_state(u, dt_s)
         if self.name == "drift":
             m = t_s / 60.0
             return (1.0 - p["gain_loss_per_min"] * m) * z + p["offset_mm_per_min"] * m
@@ -207,6 +237,8 @@ class Effect:
         p = self.params
         if self.name == "creep":
             return y - self.creep_state(u, dt_s)
+        if self.name == "rate_dependence":
+            return y - self.rate_state(u, dt_s)
         if self.name == "drift":
             m = t_s / 60.0
             g = np.maximum(1.0 - p["gain_loss_per_min"] * m, 0.05)
@@ -233,6 +265,7 @@ class _Runner:
         self.c = 0.0  # creep state, mm
         self.rho = 0.0  # low-passed rate, V/s
         self.u_prev = 0.0
+        self.pushed = False  # the output rate block: no voltage applied yet (rate 0 before)
         if effect.name == "delay":
             self.line = deque([0.0] * int(round(p["delay_s"] / dt_s)))
         if effect.name in ("creep", *CHANNEL_BLOCKS):
@@ -272,6 +305,8 @@ class _Runner:
         p = self.e.params
         if self.e.name == "creep":
             return z_k + self.c
+        if self.e.name == "rate_dependence":
+            return z_k + p["gain_mm_per_v_per_s"] * self.rho
         if self.e.name == "drift":
             m = t_k / 60.0
             return (1.0 - p["gain_loss_per_min"] * m) * z_k + p["offset_mm_per_min"] * m
@@ -281,6 +316,8 @@ class _Runner:
         p = self.e.params
         if self.e.name == "creep":
             return y_k - self.c
+        if self.e.name == "rate_dependence":
+            return y_k - p["gain_mm_per_v_per_s"] * self.rho
         if self.e.name == "drift":
             m = t_k / 60.0
             g = max(1.0 - p["gain_loss_per_min"] * m, 0.05)
@@ -291,6 +328,10 @@ class _Runner:
     def push(self, u_k):
         if self.e.name == "creep":
             self.c = self.a * self.c + (1.0 - self.a) * self.e.params["gain_mm_per_v"] * u_k
+        elif self.e.name == "rate_dependence":
+            x = (u_k - self.u_prev) / self.dt_s if self.pushed else 0.0
+            self.u_prev, self.pushed = u_k, True
+            self.rho = self.a * self.rho + (1.0 - self.a) * x
 
 
 # -- the augmented model --
@@ -443,7 +484,7 @@ class AugmentedModel:
     def fit_inverse(self, u, y, inverse: InverseNarxModel | None = None) -> InverseNarxModel:
         """Fit an inverse NARX (Eq. 19) of the baseline in its own space (v, z) from the
         record (u V, y mm) the model was identified on; for :meth:`inverse_stepper`."""
-        if any(e.name in ("delay", *CHANNEL_BLOCKS) for e in self.effects):
+        if any(e.name == "delay" or e.is_channel for e in self.effects):
             raise ValueError("a model with delay, rate_dependence or memory cannot be inverted "
                              "step by step")
         v, z = self.to_baseline_space(u, y)
@@ -502,7 +543,7 @@ class AugmentedInverseStepper:
 
     def __init__(self, model: AugmentedModel, inverse: InverseNarxModel, t0_s: float = 0.0):
         for e in model.effects:
-            if e.name in ("delay", *CHANNEL_BLOCKS):
+            if e.name == "delay" or e.is_channel:
                 raise ValueError(f"the {e.name} effect cannot be inverted step by step")
         self._m = model
         self._in = [e.runner(model.dt_s) for e in model._inputs()]
@@ -1118,7 +1159,10 @@ def fit_frozen_effect(name: str, model: AugmentedModel, u, y) -> tuple[Augmented
     (u, y) (the fit part only) over a grid of :data:`FROZEN_GRID_POINTS` values, refined
     between the best value's neighbours (bounded Brent; not for the delay, in samples; below
     the first dead-zone width the neighbour is 0). A dead zone narrower than half the first
-    width is refused: no grid value beats the model as given.
+    width is refused: no grid value beats the model as given. Rate dependence is the output
+    block ``z + g rho`` (the low-passed voltage rate): for each tau (log grid from 0.02 s to a
+    third of the model's lag window, then Brent) g by least squares on the free-run residual,
+    the model's output and a constant as nuisance terms.
 
     Returns
     -------
@@ -1145,6 +1189,8 @@ def fit_frozen_effect(name: str, model: AugmentedModel, u, y) -> tuple[Augmented
         eff.frozen_ = {"fit_rmse_mm": _free_run_rmse(out, u, y),
                        "fit_rmse_before_mm": rmse_model}
         return out, eff
+    if name == "rate_dependence":
+        return _fit_frozen_rate(model, u, y, rmse_model)
     key = Effect._KEYS[name][0]
 
     def score(value: float) -> float:
@@ -1172,6 +1218,55 @@ def fit_frozen_effect(name: str, model: AugmentedModel, u, y) -> tuple[Augmented
     eff = Effect(name, **{key: best})
     eff.frozen_ = {"fit_rmse_mm": best_score, "fit_rmse_before_mm": rmse_model}
     return AugmentedModel(model.baseline, model.effects + [eff], model.dt_s), eff
+
+
+FROZEN_RATE_TAU_MIN_S = 0.02  # the current's low-pass: from a sample or two ...
+FROZEN_RATE_WINDOW_SHARE = 1.0 / 3.0  # ... to a third of the model's lag window, as the channel
+
+
+def _fit_frozen_rate(model: AugmentedModel, u, y, rmse_model: float
+                     ) -> tuple[AugmentedModel, Effect]:
+    # Linear in the gain for a given tau: least squares on the free-run residual, with the
+    # model's own output and a constant as nuisance terms (a model from another day may be off
+    # by a constant factor or offset: no rate dependence), tau on a log grid then Brent.
+    L = model.max_lag_
+    dt = model.dt_s
+    z = model.simulate(u, y[:L])
+    r = (y - z)[L:]
+    nuis = np.column_stack([z[L:], np.ones(r.size)])
+
+    def gain(tau: float) -> float:
+        rho = Effect("rate_dependence", tau_s=tau, gain_mm_per_v_per_s=1.0).rate_state(u, dt)
+        coef, *_ = np.linalg.lstsq(np.column_stack([rho[L:], nuis]), r, rcond=None)
+        return float(coef[0])
+
+    def score(log_tau: float) -> float:
+        tau = float(np.exp(log_tau))
+        m = AugmentedModel(model.baseline, model.effects + [Effect(
+            "rate_dependence", tau_s=tau, gain_mm_per_v_per_s=gain(tau))], dt)
+        with np.errstate(all="ignore"):
+            return _free_run_rmse(m, u, y)
+
+    # A slower low-pass of du/dt is the voltage minus its slow average (u - LP(u)) / tau: memory
+    # beyond the model's window, where a model from another day has its own error (with the
+    # test's day-1 model the fit went to 1 s on clean and rate records alike, docs/diagnose.md).
+    lo = max(FROZEN_RATE_TAU_MIN_S, 1.5 * dt)
+    hi = max(FROZEN_RATE_WINDOW_SHARE * max(L, 1) * dt, 2.0 * lo)
+    grid = np.linspace(np.log(lo), np.log(hi), FROZEN_GRID_POINTS)
+    scores = [score(v) for v in grid]
+    i = int(np.argmin(scores))
+    best, best_score = float(grid[i]), float(scores[i])
+    if not best_score < rmse_model:
+        raise ValueError(f"no rate_dependence: the model as given fits the fit part best "
+                         f"without it (free-run RMSE {rmse_model:.4g} mm)")
+    res = minimize_scalar(score, bounds=(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]),
+                          method="bounded", options={"xatol": 1e-3})
+    if res.success and res.fun < best_score:
+        best, best_score = float(res.x), float(res.fun)
+    tau = float(np.exp(best))
+    eff = Effect("rate_dependence", tau_s=tau, gain_mm_per_v_per_s=gain(tau))
+    eff.frozen_ = {"fit_rmse_mm": best_score, "fit_rmse_before_mm": rmse_model}
+    return AugmentedModel(model.baseline, model.effects + [eff], dt), eff
 
 
 def fit_effect(name: str, model: AugmentedModel, narx: NarxModel, u, y, *,

@@ -178,9 +178,15 @@ def day1_model():
 # here were used for neither. (Drift
 # around a given model: not here; this fast day-1 model's own error drifts with the input's
 # cycles, -0.14 /min on the clean record, so a 0.15 /min drift is not told from it.)
+# Asymmetry and rate dependence (session 13): designed on seeds 0, 1 (+100) with 0.7 / 0.8 and
+# 0.1 / 0.05 mm/(V/s); the sizes here were used for neither. The plant's asymmetry scales its
+# negative *bending*, the block the negative *voltage*: through the plant's stiffening bend a
+# bending ratio of 0.75 is a voltage ratio near 0.8, inside the 25 %.
 @pytest.mark.parametrize("effect, params", [
     ("dead_zone", {"width_v": 0.4}),
     ("saturation", {"limit_mm": 2.0}),
+    ("asymmetry", {"negative_gain_ratio": 0.75}),
+    ("rate_dependence", {"gain_mm_per_v_per_s": 0.08}),
     (None, {}),
 ])
 def test_given_model_from_a_clean_day_names_what_changed(day1_model, effect, params):
@@ -193,9 +199,14 @@ def test_given_model_from_a_clean_day_names_what_changed(day1_model, effect, par
     assert d.effects_found[:1] == [effect]
     assert d.model_after.baseline is day1_model.baseline  # the block around it, not a refit
     fitted = d.model_after.effects[0].params
+    # the rate block's tau lands at its cap (0.4 s, a third of the model's window; the plant
+    # charges in 0.3 s behind a slew limit), where gain and tau trade: measured 0.099 for 0.08
+    rel = 0.35 if effect == "rate_dependence" else 0.25
     for k, v in params.items():
-        assert fitted[k] == pytest.approx(v, rel=0.25)
-    assert d.rmse_after_mm < 0.6 * d.rmse_before_mm
+        assert fitted[k] == pytest.approx(v, rel=rel)
+    # 0.6: dead zone and saturation take most of the error; asymmetry and rate dependence
+    # (measured +11 % on this record with the fast day-1 model) less
+    assert d.rmse_after_mm < (0.9 if effect == "rate_dependence" else 0.6) * d.rmse_before_mm
 
 
 

@@ -71,6 +71,7 @@ def test_creep_state_is_first_order_step_response():
     ("creep", {"tau_s": 5.0, "gain_mm_per_v": -0.3}),
     ("drift", {"gain_loss_per_min": 0.05, "offset_mm_per_min": 0.1}),
     ("saturation", {"limit_mm": 4.0}),
+    ("rate_dependence", {"tau_s": 0.3, "gain_mm_per_v_per_s": 0.1}),
 ])
 def test_output_effect_backward_inverts_forward(name, params):
     e = Effect(name, **params)
@@ -79,6 +80,24 @@ def test_output_effect_backward_inverts_forward(name, params):
     z = rng.uniform(-3, 3, 500)
     t = np.arange(500) * 0.02
     assert_allclose(e.backward(e.forward(z, u, t, 0.02), u, t, 0.02), z, atol=1e-9)
+
+
+def test_rate_output_block_is_the_low_passed_voltage_rate_one_sample_late():
+    e = Effect("rate_dependence", tau_s=0.3, gain_mm_per_v_per_s=0.1)
+    assert e.side == "output" and not e.is_channel
+    assert Effect("rate_dependence", tau_s=0.3).is_channel  # the refit form: a channel
+    assert "mm/(V/s)" in e.describe()
+    with pytest.raises(ValueError, match=r"or \['tau_s', 'gain_mm_per_v_per_s'\]"):
+        Effect("rate_dependence", gain_mm_per_v_per_s=0.1)
+    dt = 0.02
+    u = np.r_[np.zeros(10), np.linspace(0.0, 2.0, 51), np.full(400, 2.0)]  # a 2 V ramp in 1 s
+    g = e.rate_state(u, dt)
+    assert_allclose(g[:12], 0.0, atol=1e-15)  # nothing before the rate reaches it
+    a = np.exp(-dt / 0.3)
+    assert g[12] == pytest.approx(0.1 * (1 - a) * 2.0)  # first ramp step (2 V/s), a sample late
+    assert g[61] == pytest.approx(0.2 * (1 - a ** 50), rel=1e-9)  # 50 ramp steps: towards g du/dt
+    assert abs(g[-1]) < 1e-6  # held: no current, no bending
+    assert np.sum(g) * dt == pytest.approx(0.1 * 2.0, rel=1e-6)  # integral: g times the step
 
 
 def test_stepper_matches_batch_simulation(base):
@@ -95,6 +114,18 @@ def test_stepper_matches_batch_simulation(base):
     t = np.arange(u.size) * m.dt_s
     expected = effects[2].forward(effects[1].forward(z, u, t, m.dt_s), u, t, m.dt_s)
     assert_allclose(stream, expected, atol=1e-9)
+    # the rate output block: batch and stream agree, and it is invertible step by step
+    rate = AugmentedModel(base.baseline, [Effect("rate_dependence", tau_s=0.3,
+                                                 gain_mm_per_v_per_s=0.1)], base.dt_s)
+    st = rate.stepper()
+    bs = base.baseline.stepper()
+    z = np.array([bs.step(x) for x in u])
+    assert_allclose([st.step(v) for v in u], rate.effects[0].forward(z, u, t, m.dt_s),
+                    atol=1e-9)
+    inv = rate.inverse_stepper(_IdentityInverse())
+    u_ff = np.array([inv.step(r) for r in u])
+    # identity baseline: y = u_ff + g rho(u_ff) must equal the reference exactly
+    assert_allclose(u_ff + rate.effects[0].rate_state(u_ff, rate.dt_s), u, atol=1e-12)
 
 
 class _IdentityInverse:
@@ -146,11 +177,13 @@ def test_delay_is_not_invertible(base):
 
 def test_save_load_round_trip(tmp_path, base):
     effects = [Effect("creep", tau_s=12.0, gain_mm_per_v=-0.25), Effect("asymmetry",
-                                                                       negative_gain_ratio=1.3)]
+                                                                       negative_gain_ratio=1.3),
+               Effect("rate_dependence", tau_s=0.3, gain_mm_per_v_per_s=0.1)]
     m = AugmentedModel(base.baseline, effects, base.dt_s)
     p = save_augmented(m, tmp_path / "aug.json")
     m2 = load_augmented(p)
-    assert m2.effect_names == ["creep", "asymmetry"]
+    assert m2.effect_names == ["creep", "asymmetry", "rate_dependence"]
+    assert m2.effects[2].side == "output"
     u = random_sine(8, RATE, 2.0, (0.1, 1.0), 4, seed=7)[1]
     assert_allclose(m2.simulate(u), m.simulate(u), atol=1e-12)
     (tmp_path / "bad.json").write_text("{}")
@@ -321,6 +354,7 @@ def test_every_candidate_fits(record, base):
     ("dead_zone", {"width_v": 0.35}), ("saturation", {"limit_mm": 1.2}),
     ("asymmetry", {"negative_gain_ratio": 0.7}), ("delay", {"delay_s": 0.1}),
     ("drift", {"gain_loss_per_min": 0.2, "offset_mm_per_min": -0.3}),
+    ("rate_dependence", {"tau_s": 0.25, "gain_mm_per_v_per_s": 0.08}),
 ])
 def test_frozen_fit_recovers_the_block_around_a_fixed_model(record, base, name, params):
     # data = the fixed model seen through the block (+ laser-like noise): the fit must find
@@ -355,6 +389,11 @@ def test_frozen_fit_refuses_a_block_the_data_do_not_need(record, base):
             fit_frozen_effect(name, base, u, y)
     with pytest.raises(ValueError, match="cannot be fitted around a frozen model"):
         fit_frozen_effect("creep", base, u, y)
+    # the rate block's gain is fitted by least squares, so it rarely is refused outright; on
+    # the model's own output it must change next to nothing
+    m, eff = fit_frozen_effect("rate_dependence", base, u, y)
+    assert abs(eff.params["gain_mm_per_v_per_s"]) < 0.005
+    assert eff.frozen_["fit_rmse_mm"] > 0.99 * eff.frozen_["fit_rmse_before_mm"]
 
 
 @pytest.mark.parametrize("delay_s, seed", [(None, 0), (None, 3), (0.05, 0), (0.1, 3), (0.2, 5)])
