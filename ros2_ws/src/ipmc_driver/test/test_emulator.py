@@ -159,10 +159,12 @@ def test_garbage_resyncs(rig):
     assert counters == list(range(counters[0], counters[0] + len(counters)))
 
 
-def counters_until_gap(port, dec, timeout_s=10.0, after=10):
+def counters_until_gap(port, dec, last: int, timeout_s=10.0, after=10):
     """Sample counters read until a gap and ``after`` samples past it are in (a starved
-    emulator thread may apply a fault late: seen at 3 s with load 9), or ``timeout_s``."""
-    counters, t0 = [], time.monotonic()
+    emulator thread may apply a fault late: seen at 3 s with load 9), or ``timeout_s``.
+    ``last`` is the counter read just before the fault: with the port drained, the first
+    frames the fault removes follow it directly, and the gap is between it and the next."""
+    counters, t0 = [last], time.monotonic()
     while time.monotonic() < t0 + timeout_s:
         counters += [m.counter for m in samples_of(read_for(port, dec, 0.05))]
         gaps = [i for i in range(1, len(counters)) if counters[i] - counters[i - 1] != 1]
@@ -174,13 +176,13 @@ def counters_until_gap(port, dec, timeout_s=10.0, after=10):
 def test_drop_and_silence_leave_counter_gaps(rig):
     emu, port, _ = rig
     dec = FrameDecoder()
-    read_for(port, dec, 0.1)
+    before = samples_of(read_for(port, dec, 0.1))
     emu.inject(Fault("drop", 4))
-    counters = counters_until_gap(port, dec)
+    counters = counters_until_gap(port, dec, before[-1].counter)
     assert [b - a for a, b in zip(counters, counters[1:], strict=False) if b - a != 1] == [5]
     emu.inject(Fault("silence", 0.3))
     t_fault = time.monotonic()
-    arrivals = []
+    arrivals = [(0.0, counters[-1])]  # the last counter before the fault, as for the drop
     # Read until the gap and some samples after it are in (a starved emulator thread may apply
     # the fault late); give up after 3 s.
     while time.monotonic() < t_fault + 3.0:
