@@ -1228,24 +1228,21 @@ def _fit_frozen_rate(model: AugmentedModel, u, y, rmse_model: float
                      ) -> tuple[AugmentedModel, Effect]:
     # Linear in the gain for a given tau: least squares on the free-run residual, with the
     # model's own output and a constant as nuisance terms (a model from another day may be off
-    # by a constant factor or offset: no rate dependence), tau on a log grid then Brent.
+    # by a constant factor or offset: no rate dependence), tau on a log grid then Brent. The
+    # block adds g rho to the model's free run (outermost), so each tau is scored on the
+    # residual without simulating the model again.
     L = model.max_lag_
     dt = model.dt_s
     z = model.simulate(u, y[:L])
     r = (y - z)[L:]
     nuis = np.column_stack([z[L:], np.ones(r.size)])
 
-    def gain(tau: float) -> float:
-        rho = Effect("rate_dependence", tau_s=tau, gain_mm_per_v_per_s=1.0).rate_state(u, dt)
-        coef, *_ = np.linalg.lstsq(np.column_stack([rho[L:], nuis]), r, rcond=None)
-        return float(coef[0])
-
-    def score(log_tau: float) -> float:
+    def fit(log_tau: float) -> tuple[float, float]:
         tau = float(np.exp(log_tau))
-        m = AugmentedModel(model.baseline, model.effects + [Effect(
-            "rate_dependence", tau_s=tau, gain_mm_per_v_per_s=gain(tau))], dt)
-        with np.errstate(all="ignore"):
-            return _free_run_rmse(m, u, y)
+        rho = Effect("rate_dependence", tau_s=tau,
+                     gain_mm_per_v_per_s=1.0).rate_state(u, dt)[L:]
+        coef, *_ = np.linalg.lstsq(np.column_stack([rho, nuis]), r, rcond=None)
+        return float(coef[0]), float(np.sqrt(np.mean((r - coef[0] * rho) ** 2)))
 
     # A slower low-pass of du/dt is the voltage minus its slow average (u - LP(u)) / tau: memory
     # beyond the model's window, where a model from another day has its own error (with the
@@ -1253,20 +1250,20 @@ def _fit_frozen_rate(model: AugmentedModel, u, y, rmse_model: float
     lo = max(FROZEN_RATE_TAU_MIN_S, 1.5 * dt)
     hi = max(FROZEN_RATE_WINDOW_SHARE * max(L, 1) * dt, 2.0 * lo)
     grid = np.linspace(np.log(lo), np.log(hi), FROZEN_GRID_POINTS)
-    scores = [score(v) for v in grid]
+    scores = [fit(v)[1] for v in grid]
     i = int(np.argmin(scores))
     best, best_score = float(grid[i]), float(scores[i])
     if not best_score < rmse_model:
         raise ValueError(f"no rate_dependence: the model as given fits the fit part best "
                          f"without it (free-run RMSE {rmse_model:.4g} mm)")
-    res = minimize_scalar(score, bounds=(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]),
-                          method="bounded", options={"xatol": 1e-3})
+    res = minimize_scalar(lambda v: fit(v)[1], method="bounded", options={"xatol": 1e-3},
+                          bounds=(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]))
     if res.success and res.fun < best_score:
-        best, best_score = float(res.x), float(res.fun)
-    tau = float(np.exp(best))
-    eff = Effect("rate_dependence", tau_s=tau, gain_mm_per_v_per_s=gain(tau))
-    eff.frozen_ = {"fit_rmse_mm": best_score, "fit_rmse_before_mm": rmse_model}
-    return AugmentedModel(model.baseline, model.effects + [eff], dt), eff
+        best = float(res.x)
+    eff = Effect("rate_dependence", tau_s=float(np.exp(best)), gain_mm_per_v_per_s=fit(best)[0])
+    out = AugmentedModel(model.baseline, model.effects + [eff], dt)
+    eff.frozen_ = {"fit_rmse_mm": _free_run_rmse(out, u, y), "fit_rmse_before_mm": rmse_model}
+    return out, eff
 
 
 def fit_effect(name: str, model: AugmentedModel, narx: NarxModel, u, y, *,
