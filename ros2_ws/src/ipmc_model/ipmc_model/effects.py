@@ -207,17 +207,13 @@ class Effect:
 
     def creep_state(self, u: np.ndarray, dt_s: float) -> np.ndarray:
         """Creep c_k for every k from the input (N,) (causal: c_k uses u up to k - 1)."""
-        p = self.params
-        a = math.exp(-dt_s / p["tau_s"])
-        return lfilter([0.0, (1.0 - a) * p["gain_mm_per_v"]], [1.0, -a], u)
+        return _late_low_pass(u, dt_s, self.params["tau_s"], self.params["gain_mm_per_v"])
 
     def rate_state(self, u: np.ndarray, dt_s: float) -> np.ndarray:
         """Rate output block g rho_k (mm) for every k from the input (N,) (causal: rho_k uses
         u up to k - 1; the rate before the record is 0)."""
-        p = self.params
-        a = math.exp(-dt_s / p["tau_s"])
         du = np.diff(u, prepend=u[:1]) / dt_s
-        return lfilter([0.0, (1.0 - a) * p["gain_mm_per_v_per_s"]], [1.0, -a], du)
+        return _late_low_pass(du, dt_s, self.params["tau_s"], self.params["gain_mm_per_v_per_s"])
 
     def forward(self, z, u, t_s, dt_s):
         """Output effect: baseline output z (mm) -> displacement y (mm), whole record."""
@@ -332,6 +328,13 @@ class _Runner:
             x = (u_k - self.u_prev) / self.dt_s if self.pushed else 0.0
             self.u_prev, self.pushed = u_k, True
             self.rho = self.a * self.rho + (1.0 - self.a) * x
+
+
+def _late_low_pass(x: np.ndarray, dt_s: float, tau_s: float, gain: float) -> np.ndarray:
+    """s_k = a s_{k-1} + (1 - a) gain x_{k-1}, a = exp(-dt / tau): the creep and rate states,
+    one sample late so that the state is known before u_k is chosen (inverse steppers)."""
+    a = math.exp(-dt_s / tau_s)
+    return lfilter([0.0, (1.0 - a) * gain], [1.0, -a], x)
 
 
 # -- the augmented model --
@@ -656,7 +659,12 @@ def load_augmented(path, dt_s: float | None = None) -> AugmentedModel:
 # -- fitting the effects --
 def _free_run_rmse(model: AugmentedModel, u, y, u_past=None, t0_s=0.0) -> float:
     L = model.max_lag_
-    ys = model.simulate(u, y[:L], u_past=u_past, t0_s=t0_s)
+    return _rmse_after(model.simulate(u, y[:L], u_past=u_past, t0_s=t0_s), y, L)
+
+
+def _rmse_after(ys: np.ndarray, y: np.ndarray, L: int) -> float:
+    """RMSE (mm) of a free run ``ys`` against ``y`` after the first ``L`` samples (inf if the
+    run is not finite)."""
     if not np.all(np.isfinite(ys)):
         return float("inf")
     return float(np.sqrt(np.mean((ys[L:] - y[L:]) ** 2)))
@@ -1178,19 +1186,19 @@ def fit_frozen_effect(name: str, model: AugmentedModel, u, y) -> tuple[Augmented
     u = as_signal("u", u)
     y = as_signal("y", y)
     same_length(u=u, y=y)
-    rmse_model = _free_run_rmse(model, u, y)
+    L = model.max_lag_
+    z = model.simulate(u, y[:L])  # the model's free run, once: drift and rate start from it
+    rmse_model = _rmse_after(z, y, L)
     if name == "drift":
         # linear around a fixed model: the backfit's first pass, nothing refitted (without the
         # constant gain as nuisance a stale model passed a drift of +42 % on a dead-zone record)
-        L = model.max_lag_
-        eff = _drift_on_residual(model.simulate(u, y[:L]), y, np.arange(u.size) * model.dt_s
-                                 / 60.0, L)
+        eff = _drift_on_residual(z, y, np.arange(u.size) * model.dt_s / 60.0, L)
         out = AugmentedModel(model.baseline, model.effects + [eff], model.dt_s)
         eff.frozen_ = {"fit_rmse_mm": _free_run_rmse(out, u, y),
                        "fit_rmse_before_mm": rmse_model}
         return out, eff
     if name == "rate_dependence":
-        return _fit_frozen_rate(model, u, y, rmse_model)
+        return _fit_frozen_rate(model, u, y, z, rmse_model)
     key = Effect._KEYS[name][0]
 
     def score(value: float) -> float:
@@ -1224,16 +1232,15 @@ FROZEN_RATE_TAU_MIN_S = 0.02  # the current's low-pass: from a sample or two ...
 FROZEN_RATE_WINDOW_SHARE = 1.0 / 3.0  # ... to a third of the model's lag window, as the channel
 
 
-def _fit_frozen_rate(model: AugmentedModel, u, y, rmse_model: float
+def _fit_frozen_rate(model: AugmentedModel, u, y, z, rmse_model: float
                      ) -> tuple[AugmentedModel, Effect]:
     # Linear in the gain for a given tau: least squares on the free-run residual, with the
     # model's own output and a constant as nuisance terms (a model from another day may be off
     # by a constant factor or offset: no rate dependence), tau on a log grid then Brent. The
     # block adds g rho to the model's free run (outermost), so each tau is scored on the
-    # residual without simulating the model again.
+    # residual without simulating the model again (z: its free run on the fit part).
     L = model.max_lag_
     dt = model.dt_s
-    z = model.simulate(u, y[:L])
     r = (y - z)[L:]
     nuis = np.column_stack([z[L:], np.ones(r.size)])
 

@@ -181,7 +181,7 @@ def day1_model():
 # Asymmetry and rate dependence (session 13): designed on seeds 0, 1 (+100) with 0.7 / 0.8 and
 # 0.1 / 0.05 mm/(V/s); the sizes here were used for neither. The plant's asymmetry scales its
 # negative *bending*, the block the negative *voltage*: through the plant's stiffening bend a
-# bending ratio of 0.75 is a voltage ratio near 0.8, inside the 25 %.
+# bending ratio of 0.75 is a voltage ratio between 0.75 and sqrt(0.75) = 0.87, inside the 25 %.
 @pytest.mark.parametrize("effect, params", [
     ("dead_zone", {"width_v": 0.4}),
     ("saturation", {"limit_mm": 2.0}),
