@@ -1,47 +1,201 @@
 """Launch files (ros2 launch is not on PyPI): every node they start must exist, and they must
-start the same graph as `ipmc bringup`."""
+start the same graph, with the same parameters, as `ipmc bringup`.
+
+The files are run against a stand-in for the parts of `launch` / `launch_ros` they use, which
+evaluates node parameters by launch_ros's rules (values become YAML text and are parsed back; a
+substitution that gives "" parses to None, which launch_ros refuses)."""
 
 from __future__ import annotations
 
-import ast
+import math
+import runpy
+import sys
+import types
 from importlib.metadata import entry_points
 from pathlib import Path
 
 import pytest
+import yaml
 
 from ipmc_control.bringup import graph_specs
 
 LAUNCH_DIR = Path(__file__).resolve().parents[1] / "ros2_ws" / "src" / "ipmc_control" / "launch"
 
 
-def launched_nodes(path: Path) -> list[tuple[str, str]]:
-    """(package, executable) of every launch_ros ``Node(...)`` call in a launch file."""
-    nodes = []
-    for call in ast.walk(ast.parse(path.read_text())):
-        if isinstance(call, ast.Call) and getattr(call.func, "id", "") == "Node":
-            kw = {k.arg: k.value.value for k in call.keywords
-                  if isinstance(k.value, ast.Constant)}
-            nodes.append((kw["package"], kw["executable"]))
-    return nodes
+class _Substitution:
+    def perform(self, context) -> str:
+        raise NotImplementedError
 
 
-@pytest.mark.parametrize("name", ["sim.launch.py", "rig.launch.py"])
-def test_launch_file_names_installed_executables(name):
+def _perform(parts, context) -> str:
+    parts = parts if isinstance(parts, list | tuple) else [parts]
+    return "".join(p if isinstance(p, str) else p.perform(context) for p in parts)
+
+
+class _LaunchConfiguration(_Substitution):
+    def __init__(self, name, default=None):
+        self.name, self.default = name, default
+
+    def perform(self, context):
+        if self.name in context.launch_configurations:
+            return context.launch_configurations[self.name]
+        if self.default is None:
+            raise LookupError(f"launch configuration {self.name!r} does not exist")
+        return self.default
+
+
+class _PythonExpression(_Substitution):
+    def __init__(self, expression):
+        self.expression = expression
+
+    def perform(self, context):
+        return str(eval(_perform(self.expression, context), {"math": math}))
+
+
+class _IfCondition:
+    def __init__(self, predicate):
+        self.predicate = predicate
+
+    def evaluate(self, context) -> bool:
+        text = _perform(self.predicate, context).strip().lower()
+        if text not in ("true", "1", "false", "0"):
+            raise ValueError(f"IfCondition on {text!r}")
+        return text in ("true", "1")
+
+
+def _launch_ros_value(value, context=None):
+    """A node parameter value as launch_ros (normalize + evaluate) hands it to the node."""
+    if isinstance(value, _Substitution):
+        parsed = yaml.safe_load(value.perform(context))
+        if not isinstance(parsed, bool | int | float | str | list):
+            raise TypeError(f"launch_ros refuses {type(parsed)} (a substitution gave "
+                            f"{value.perform(context)!r})")
+        return parsed
+    if isinstance(value, str):
+        return yaml.safe_load(yaml.dump(value))
+    if isinstance(value, bool | int | float):
+        return value
+    if isinstance(value, list | tuple):
+        if not value:
+            raise TypeError("launch_ros refuses an empty sequence")
+        return [_launch_ros_value(v, context) for v in value]
+    raise TypeError(f"launch_ros refuses a parameter value {value!r}")
+
+
+def run_launch_file(path: Path, **arguments: str) -> dict[str, tuple[str, str, dict]]:
+    """{node name: (package, executable, parameters)} that the launch file starts."""
+    declared, opaque, nodes = {}, [], []
+
+    class DeclareLaunchArgument:
+        def __init__(self, name, default_value=None, description="", choices=None):
+            declared[name] = default_value
+
+    class OpaqueFunction:
+        def __init__(self, function, args=None, kwargs=None):
+            opaque.append(function)
+
+    class Node:
+        def __init__(self, **kw):
+            nodes.append(kw)
+
+    fake = {
+        "launch": types.SimpleNamespace(LaunchDescription=list),
+        "launch.actions": types.SimpleNamespace(DeclareLaunchArgument=DeclareLaunchArgument,
+                                                OpaqueFunction=OpaqueFunction),
+        "launch.conditions": types.SimpleNamespace(IfCondition=_IfCondition),
+        "launch.substitutions": types.SimpleNamespace(LaunchConfiguration=_LaunchConfiguration,
+                                                      PythonExpression=_PythonExpression),
+        "launch_ros.actions": types.SimpleNamespace(Node=Node),
+    }
+    saved = {k: sys.modules.get(k) for k in fake}
+    sys.modules.update(fake)
+    try:
+        runpy.run_path(str(path))["generate_launch_description"]()
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                sys.modules.pop(k)
+            else:
+                sys.modules[k] = v
+    unknown = set(arguments) - set(declared)
+    assert not unknown, f"{path.name} does not declare {unknown}"
+    missing = [n for n, d in declared.items() if d is None and n not in arguments]
+    if missing:
+        raise LookupError(f"{path.name} needs the launch argument(s) {missing}")
+    context = types.SimpleNamespace(launch_configurations={**declared, **arguments})
+    for function in opaque:
+        function(context)
+    launched = {}
+    for kw in nodes:
+        if kw.get("condition") is not None and not kw["condition"].evaluate(context):
+            continue
+        params = {}
+        for block in kw.get("parameters", ()):
+            params.update({k: _launch_ros_value(v, context) for k, v in block.items()})
+        launched[kw["name"]] = (kw["package"], kw["executable"], params)
+    return launched
+
+
+def bringup_graph(**kw) -> dict[str, tuple[str, str, dict]]:
+    """{node name: (package, executable, parameters)} of `ipmc bringup` (graph_specs)."""
+    args = {"rig_port": None, "lockstep": False, "model": None, "mode": "hybrid",
+            "reference": "sine", "plant_effects": [], "record": None, **kw}
+    return {s.name: (s.package, s.executable, {k: _launch_ros_value(v)
+                                               for k, v in s.params.items()})
+            for s in graph_specs(**args)}
+
+
+@pytest.mark.parametrize("name,args", [("sim.launch.py", {"model": "m.json"}),
+                                       ("rig.launch.py", {"port": "/dev/ttyX"})])
+def test_launch_file_names_installed_executables(name, args):
     scripts = {(ep.dist.name if ep.dist else "", ep.name)
                for ep in entry_points(group="console_scripts")}
-    nodes = launched_nodes(LAUNCH_DIR / name)
+    nodes = run_launch_file(LAUNCH_DIR / name, **args, mode="pid", record="bag").values()
     assert len(nodes) >= 4
-    for package, executable in nodes:
+    for package, executable, _ in nodes:
         assert (package.replace("_", "-"), executable) in {
             (d.replace("_", "-"), e) for d, e in scripts}, f"{package}/{executable} not installed"
 
 
-@pytest.mark.parametrize("name,rig", [("sim.launch.py", None), ("rig.launch.py", "/dev/ttyX")])
-def test_launch_file_starts_the_same_graph_as_bringup(name, rig):
-    launched = sorted(exe for _, exe in launched_nodes(LAUNCH_DIR / name))
-    specs = graph_specs(rig_port=rig, lockstep=False, model="m.json", mode="hybrid",
-                        reference="sine", plant_effects=[], record="bag")
-    assert launched == sorted(s.executable for s in specs)
+@pytest.mark.parametrize("lockstep", ["false", "true"])
+@pytest.mark.parametrize("model,record", [("m.json", "bag"), ("m.json", ""), ("", "bag"),
+                                          ("", "")])
+def test_sim_launch_starts_the_same_graph_as_bringup(lockstep, model, record):
+    mode = "hybrid" if model else "pid"
+    launched = run_launch_file(LAUNCH_DIR / "sim.launch.py", model=model, record=record,
+                               mode=mode, lockstep=lockstep, reference="steps",
+                               plant_effects="['creep', 'drift']")
+    expected = bringup_graph(lockstep=lockstep == "true", model=model or None, mode=mode,
+                             reference="steps", plant_effects=["creep", "drift"],
+                             record=record or None)
+    assert launched == expected
+    if lockstep == "true":     # the listener counts that the old launch file left at defaults
+        listeners = 1 + bool(model) + bool(record)
+        assert launched["reference"][2]["min_subscribers"] == listeners
+        assert launched["sim_plant"][2]["lockstep_min_subscribers"] == listeners
+
+
+def test_rig_launch_starts_the_same_graph_as_bringup():
+    launched = run_launch_file(LAUNCH_DIR / "rig.launch.py", port="/dev/ttyX", model="m.json",
+                               record="bag")
+    assert launched == bringup_graph(rig_port="/dev/ttyX", model="m.json", record="bag")
+    with pytest.raises(LookupError, match="port"):
+        run_launch_file(LAUNCH_DIR / "rig.launch.py", model="m.json")
+
+
+def test_launch_arguments_are_checked_and_both_models_are_served(tmp_path):
+    sim = LAUNCH_DIR / "sim.launch.py"
+    with pytest.raises(ValueError, match="mode hybrid needs a model"):
+        run_launch_file(sim)
+    with pytest.raises(ValueError, match="lockstep"):
+        run_launch_file(sim, mode="pid", lockstep="yes please")
+    assert run_launch_file(sim, mode="pid", plant_effects="creep, delay")["sim_plant"][2][
+        "effects"] == ["creep", "delay"]
+    # An inverse model for the feedforward and a forward model for the prediction.
+    server = run_launch_file(sim, model="inv.json", forward_model="fwd.json")["model_server"][2]
+    assert server["inverse_model_file"] == str(Path("inv.json").resolve())
+    assert server["model_file"] == str(Path("fwd.json").resolve())
+    assert server["history_voltage"] == "clamped"
 
 
 def test_bringup_serves_each_kind_of_feedforward_model_as_model_server_expects(tmp_path):

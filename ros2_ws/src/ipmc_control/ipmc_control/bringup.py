@@ -44,6 +44,12 @@ def ros_args(params: dict) -> list[str]:
     return argv
 
 
+#: The ROS package that installs each node executable (launch files need it).
+PACKAGE_OF = {"sim_plant": "ipmc_driver", "driver": "ipmc_driver", "recorder": "ipmc_driver",
+              "model_server": "ipmc_model", "controller": "ipmc_control",
+              "reference": "ipmc_control"}
+
+
 @dataclass
 class NodeSpec:
     """One process of the graph: executable name and ROS parameters."""
@@ -51,6 +57,10 @@ class NodeSpec:
     name: str
     executable: str
     params: dict = field(default_factory=dict)
+
+    @property
+    def package(self) -> str:
+        return PACKAGE_OF[self.executable]
 
 
 class Graph:
@@ -174,6 +184,59 @@ def graph_specs(*, rig_port: str | None, lockstep: bool, model: str | None, mode
     return specs
 
 
+def mode_needs_model(mode: str, model: str | None) -> str | None:
+    """Why ``mode`` cannot run without a feedforward model file, or None if it can."""
+    if mode != "pid" and not model:
+        return (f"mode {mode} needs a model (an inverse model file, or a forward model with "
+                "voltage channels); use mode pid without one")
+    return None
+
+
+def _launch_bool(name: str, text: str) -> bool:
+    if text.strip().lower() in ("true", "1"):
+        return True
+    if text.strip().lower() in ("false", "0"):
+        return False
+    raise ValueError(f"launch argument {name}:={text!r}: expected true or false")
+
+
+def _launch_list(text: str) -> list[str]:
+    """``"['creep', 'drift']"`` (YAML) or ``"creep,drift"``; empty for ``""`` or ``"[]"``."""
+    text = text.strip()
+    if text.startswith("["):
+        import yaml
+        return [str(v) for v in yaml.safe_load(text) or []]
+    return [v.strip() for v in text.split(",") if v.strip()]
+
+
+def launch_specs(args: dict[str, str], *, rig: bool) -> list[NodeSpec]:
+    """The graph of ``sim.launch.py`` (``rig=False``) or ``rig.launch.py`` from the launch
+    arguments' strings: the same nodes and parameters as ``ipmc bringup``.
+
+    ``model`` is the feedforward model (inverse, or forward with voltage channels);
+    ``forward_model`` alone serves as the feedforward too, and beside an inverse ``model`` it
+    serves the predictions and the residual.
+    """
+    model, forward = args.get("model", ""), args.get("forward_model", "")
+    mode = args.get("mode", "hybrid")
+    why = mode_needs_model(mode, model or forward)
+    if why:
+        raise ValueError(why)
+    specs = graph_specs(
+        rig_port=args["port"] if rig else None,
+        lockstep=False if rig else _launch_bool("lockstep", args.get("lockstep", "false")),
+        model=model or forward or None, mode=mode, reference=args.get("reference", "sine"),
+        plant_effects=[] if rig else _launch_list(args.get("plant_effects", "")),
+        record=args.get("record") or None)
+    if model and forward:
+        server = next(s for s in specs if s.name == "model_server")
+        if "model_file" in server.params:
+            raise ValueError(f"model:={model} is a forward model; give it once, as "
+                             "forward_model:= or model:=")
+        server.params["model_file"] = str(Path(forward).resolve())
+    return specs
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="ipmc bringup",
@@ -195,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=0.0,
                         help="stop after this many wall seconds (default: until Ctrl-C)")
     args = parser.parse_args(argv)
-    if args.mode != "pid" and not args.model:
+    if mode_needs_model(args.mode, args.model):
         parser.error(f"--mode {args.mode} needs --model (an inverse model file, or a forward "
                      "model with voltage channels)")
     specs = graph_specs(rig_port=args.rig, lockstep=args.lockstep, model=args.model,
