@@ -238,8 +238,13 @@ def test_lockstep_bringup_waits_for_every_listener_it_starts(model, record, list
     assert specs["reference"]["min_subscribers"] == listeners
     assert specs["sim_plant"]["lockstep_min_subscribers"] == listeners
     assert specs["sim_plant"]["lockstep_min_command_publishers"] == 1
+    if record:  # the recorder's start subscriptions wait for the outputs it records
+        assert specs["recorder"]["await_publishers"] == ["/ipmc/command"] + (
+            ["/ipmc/feedforward", "/ipmc/predicted", "/ipmc/residual"] if model else [])
+        assert set(specs["recorder"]["await_publishers"]) <= set(specs["recorder"]["topics"])
     realtime = {s.name: s.params for s in graph_specs(
         rig_port=None, lockstep=False, model=model, mode="hybrid", reference="sine",
         plant_effects=[], record=record)}
     assert "min_subscribers" not in realtime["reference"]
     assert "lockstep_min_command_publishers" not in realtime["sim_plant"]
+    assert "await_publishers" not in realtime.get("recorder", {})

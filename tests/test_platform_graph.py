@@ -185,3 +185,45 @@ def test_lockstep_time_waits_for_the_stamped_commander(processes, rclpy_context,
     # Sample k (from 0) was answered with 0.1 (k + 1) V, applied over sample k + 1.
     for k in range(29):
         assert applied[stamps[k + 1]] == pytest.approx(0.1 * (k + 1)), (k, applied)
+
+
+def test_recorder_subscribes_the_rest_once_awaited_publishers_have_matched(
+        processes, rclpy_context, spin, tmp_path):
+    """With ``await_publishers``, the recorder's displacement subscription (which a lock-step
+    start waits for) appears only once the awaited topic has matched a publisher, so the
+    awaited topic's first sample is in the bag (a late match once lost 1.9 s of them)."""
+    from geometry_msgs.msg import Vector3Stamped
+
+    from ipmc_driver.dataio import read_stamped_series
+    from ipmc_driver.qos import PAIRED_SAMPLE_QOS
+
+    bag = tmp_path / "await_bag"
+    processes.start_node("recorder", "recorder", {
+        "output": str(bag), "topics": ["/ipmc/displacement", "/ipmc/feedforward"],
+        "await_publishers": ["/ipmc/feedforward"]})
+    node = rclpy.create_node("await_test", context=rclpy_context)
+    try:
+        disp = node.create_publisher(PointStamped, "/ipmc/displacement", SAMPLE_QOS)
+        assert spin(node, lambda: node.count_subscribers("/ipmc/feedforward") >= 1, 20.0), \
+            "recorder did not come up"
+        spin(node, lambda: disp.get_subscription_count() > 0, 2.0)
+        assert disp.get_subscription_count() == 0, "displacement subscribed before feedforward"
+        ff = node.create_publisher(Vector3Stamped, "/ipmc/feedforward", PAIRED_SAMPLE_QOS)
+        assert spin(node, lambda: disp.get_subscription_count() == 1, 20.0), \
+            "displacement never subscribed after the feedforward publisher appeared"
+        spin(node, lambda: ff.get_subscription_count() == 1, 5.0)
+        for k in range(3):
+            stamp = (k + 1) * 10_000_000
+            m_ff, m_y = Vector3Stamped(), PointStamped()
+            m_ff.header.stamp.nanosec = m_y.header.stamp.nanosec = stamp
+            m_ff.vector.x, m_y.point.x = 0.5 * k, 1e-3 * k
+            ff.publish(m_ff)
+            disp.publish(m_y)
+        spin(node, lambda: False, 1.0)
+    finally:
+        node.destroy_node()
+    assert processes.stop("recorder") <= 2.0
+    series = read_stamped_series(bag, {"/ipmc/feedforward": "geometry_msgs/msg/Vector3Stamped",
+                                       "/ipmc/displacement": "geometry_msgs/msg/PointStamped"})
+    assert sorted(series["/ipmc/feedforward"]) == [10_000_000, 20_000_000, 30_000_000]
+    assert sorted(series["/ipmc/displacement"]) == [10_000_000, 20_000_000, 30_000_000]

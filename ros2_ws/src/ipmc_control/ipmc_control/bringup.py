@@ -152,9 +152,15 @@ def graph_specs(*, rig_port: str | None, lockstep: bool, model: str | None, mode
     common = {"use_sim_time": sim_time}
     specs = []
     if record:
-        specs.append(NodeSpec("recorder", "recorder", {**common, "output": record, "topics": [
+        rec = {**common, "output": record, "topics": [
             "/ipmc/command", "/ipmc/voltage", "/ipmc/displacement", "/ipmc/reference",
-            "/ipmc/feedforward", "/ipmc/predicted", "/ipmc/residual"]}))
+            "/ipmc/feedforward", "/ipmc/predicted", "/ipmc/residual"]}
+        if sim_time:
+            # the start waits for the recorder on displacement and reference, and the recorder
+            # subscribes those once the controller's and model_server's outputs have matched
+            rec["await_publishers"] = ["/ipmc/command"] + (
+                ["/ipmc/feedforward", "/ipmc/predicted", "/ipmc/residual"] if model else [])
+        specs.append(NodeSpec("recorder", "recorder", rec))
     if model:
         # clamped: the feedforward is a filter of the reference alone, as in ipmc track.
         specs.append(NodeSpec("model_server", "model_server",

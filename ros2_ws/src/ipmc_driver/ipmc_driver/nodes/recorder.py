@@ -11,6 +11,11 @@ split rosbag2 folders that ``ros2 bag info/play`` of a full ROS install reads (s
   a publisher appears, with its type and its reliability.
 - Messages are taken raw (``raw=True``): the subscription hands over the publisher's CDR bytes,
   written as they are, with no deserialise/serialise round trip per message.
+- ``await_publishers`` (lock-step runs; ``ipmc bringup`` and the launch files set it): those
+  topics are subscribed first, and the others only once each has matched a publisher. A
+  lock-step start waits for the recorder's displacement and reference subscriptions, so it
+  then also waits for these: a late match once lost the first 1.9 s of model_server's
+  feedforward, prediction and residual, with no warning.
 - SIGINT and SIGTERM close the bag cleanly; a SIGKILL loses at most the data since the last
   flush (``flush_s``) after ``ipmc bag-recover``, at most the current split without it.
 """
@@ -23,6 +28,7 @@ import time
 from pathlib import Path
 
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import (
     QoSDurabilityPolicy,
@@ -32,6 +38,7 @@ from rclpy.qos import (
 )
 
 from ipmc_driver.bagio import BagWriter
+from ipmc_driver.matching import MatchGate
 from ipmc_driver.node_runtime import run_node
 
 DEFAULT_TOPICS = ["/ipmc/command", "/ipmc/voltage", "/ipmc/displacement", "/ipmc/reference"]
@@ -56,6 +63,7 @@ BEST_EFFORT_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=1000,
                              reliability=QoSReliabilityPolicy.BEST_EFFORT,
                              durability=QoSDurabilityPolicy.VOLATILE)
 TICK_S = 0.1
+AWAIT_LOG_S = 5.0   # how often to say which publishers the recorder still waits for, s
 
 
 def get_message(msgtype: str):
@@ -78,6 +86,9 @@ class Recorder(Node):
             description="seconds per split file; a SIGKILL loses at most the current one", **ro))
         self.declare_parameter("flush_s", 1.0, ParameterDescriptor(
             description="seconds between pushes of buffered messages to the split file", **ro))
+        self.declare_parameter("await_publishers", [""], ParameterDescriptor(
+            description="topics subscribed first; the others once each has matched a "
+                        "publisher (a lock-step start then waits for them too)", **ro))
 
         topics = [t for t in self.get_parameter("topics").value if t]
         output = self.get_parameter("output").value or time.strftime("ipmc_bag_%Y%m%d_%H%M%S")
@@ -86,22 +97,53 @@ class Recorder(Node):
             raise ValueError(f"parameter storage must be one of {STORAGES}, got {storage!r}")
         if not topics:
             raise ValueError("parameter topics is empty; nothing to record")
+        awaited = [t for t in self.get_parameter("await_publishers").value if t]
+        wrong = [t for t in awaited if t not in topics or not TOPIC_TABLE.get(t, (0, 0))[1]]
+        if wrong:
+            known = ", ".join(t for t, (_, reliable) in TOPIC_TABLE.items() if reliable)
+            raise ValueError(f"await_publishers {wrong}: each must be one of the recorded "
+                             f"topics with reliable publishers ({known})")
 
         self.writer = BagWriter(Path(output).resolve(), storage=storage,
                                 split_s=self.get_parameter("split_s").value,
                                 flush_s=self.get_parameter("flush_s").value)
         self._subs = {}
         self._pending = []
-        for topic in topics:
+        for topic in awaited:
+            self._subscribe(topic, TOPIC_TABLE[topic][0], RELIABLE_QOS)
+        self._deferred = [t for t in topics if t not in awaited]
+        self._await_gate = MatchGate(
+            self.count_subscribers, [],
+            inputs=[(self._subs[t], t, 1) for t in awaited if t in self._subs],
+            count_publishers=self.count_publishers, warn=self.get_logger().warn)
+        self._await_log = time.monotonic()
+        self.get_logger().info(
+            f"recording {', '.join(topics)} to {self.writer.path} ({storage}, split every "
+            f"{self.writer.split_s:g} s); bag time = receive time"
+            + (f"; the other topics once {', '.join(awaited)} have publishers" if awaited else ""))
+        # Wall time: with use_sim_time a timer on /clock would not fire before the lock-step
+        # start, which waits for the subscriptions this tick makes (and flushes must not stop
+        # when simulated time does).
+        self._timer = self.create_timer(TICK_S, self._on_tick,
+                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._subscribe_deferred()
+
+    def _subscribe_deferred(self) -> None:
+        if not self._deferred:
+            return
+        if not self._await_gate.ready():
+            if time.monotonic() - self._await_log >= AWAIT_LOG_S:
+                self._await_log = time.monotonic()
+                self.get_logger().info("waiting for publishers on " + ", ".join(
+                    f"{t} ({m} of {n})" for t, (m, n) in self._await_gate.short().items()))
+            return
+        for topic in self._deferred:
             msgtype, reliable = TOPIC_TABLE.get(topic, (None, None))
             if msgtype and reliable:
                 self._subscribe(topic, msgtype, RELIABLE_QOS)
             else:
                 self._pending.append(topic)  # type or reliability from its publishers
-        self.get_logger().info(
-            f"recording {', '.join(topics)} to {self.writer.path} ({storage}, split every "
-            f"{self.writer.split_s:g} s); bag time = receive time")
-        self._timer = self.create_timer(TICK_S, self._on_tick)
+        self._deferred = []
 
     def _subscribe(self, topic: str, msgtype: str, qos: QoSProfile) -> None:
         try:
@@ -119,6 +161,7 @@ class Recorder(Node):
 
     def _on_tick(self) -> None:
         self.writer.tick()
+        self._subscribe_deferred()
         for topic in list(self._pending):
             infos = self.get_publishers_info_by_topic(topic)
             if not infos:
@@ -147,7 +190,8 @@ def main(args: list[str] | None = None) -> None:
     # SIGINT and SIGTERM both unwind spin() into destroy_node(), which closes the bag.
     run_node(Recorder, args, name="recorder", doc=__doc__,
              usage="recorder [--ros-args -p output:=BAG -p topics:=[/ipmc/voltage,...] "
-                   "-p storage:=mcap|sqlite3 -p split_s:=60.0 -p flush_s:=1.0]")
+                   "-p storage:=mcap|sqlite3 -p split_s:=60.0 -p flush_s:=1.0 "
+                   "-p await_publishers:=[/ipmc/feedforward,...]]")
 
 
 if __name__ == "__main__":
