@@ -107,14 +107,16 @@ def run_launch_file(path: Path, **arguments: str) -> dict[str, tuple[str, str, d
                                                       PythonExpression=_PythonExpression),
         "launch_ros.actions": types.SimpleNamespace(Node=Node),
     }
-    saved = {k: sys.modules.get(k) for k in fake}
+    # ipmc_control.launching imports launch: load it afresh against this stand-in
+    saved = {k: sys.modules.get(k) for k in [*fake, "ipmc_control.launching"]}
+    sys.modules.pop("ipmc_control.launching", None)
     sys.modules.update(fake)
     try:
         runpy.run_path(str(path))["generate_launch_description"]()
     finally:
         for k, v in saved.items():
             if v is None:
-                sys.modules.pop(k)
+                sys.modules.pop(k, None)
             else:
                 sys.modules[k] = v
     unknown = set(arguments) - set(declared)

@@ -215,6 +215,22 @@ def _launch_list(text: str) -> list[str]:
     return [v.strip() for v in text.split(",") if v.strip()]
 
 
+def launch_arguments(*, rig: bool) -> list[tuple[str, str | None, str]]:
+    """(name, default or None if required, description) of each argument of ``rig.launch.py``
+    (``rig=True``) or ``sim.launch.py``."""
+    models = [
+        ("model", "", "feedforward model file: inverse, or forward with voltage channels"),
+        ("forward_model", "", "forward model file; alone it is inverted for the feedforward, "
+                              "beside an inverse model it serves predictions and the residual"),
+        ("mode", "hybrid", "pid|inverse|hybrid"),
+        ("reference", "sine", "constant|sine|random|steps|file"),
+        ("record", "", "bag folder to record")]
+    if rig:
+        return [("port", None, "serial device of the RS-485 adapter"), *models]
+    return [*models, ("lockstep", "false", "lock-step clock, faster than real time"),
+            ("plant_effects", "", "simulated plant effects, e.g. \"['creep']\" or creep,drift")]
+
+
 def launch_specs(args: dict[str, str], *, rig: bool) -> list[NodeSpec]:
     """The graph of ``sim.launch.py`` (``rig=False``) or ``rig.launch.py`` from the launch
     arguments' strings: the same nodes and parameters as ``ipmc bringup``.
