@@ -7,7 +7,6 @@ substitution that gives "" parses to None, which launch_ros refuses)."""
 
 from __future__ import annotations
 
-import math
 import runpy
 import sys
 import types
@@ -22,17 +21,7 @@ from ipmc_control.bringup import graph_specs
 LAUNCH_DIR = Path(__file__).resolve().parents[1] / "ros2_ws" / "src" / "ipmc_control" / "launch"
 
 
-class _Substitution:
-    def perform(self, context) -> str:
-        raise NotImplementedError
-
-
-def _perform(parts, context) -> str:
-    parts = parts if isinstance(parts, list | tuple) else [parts]
-    return "".join(p if isinstance(p, str) else p.perform(context) for p in parts)
-
-
-class _LaunchConfiguration(_Substitution):
+class _LaunchConfiguration:
     def __init__(self, name, default=None):
         self.name, self.default = name, default
 
@@ -44,28 +33,9 @@ class _LaunchConfiguration(_Substitution):
         return self.default
 
 
-class _PythonExpression(_Substitution):
-    def __init__(self, expression):
-        self.expression = expression
-
-    def perform(self, context):
-        return str(eval(_perform(self.expression, context), {"math": math}))
-
-
-class _IfCondition:
-    def __init__(self, predicate):
-        self.predicate = predicate
-
-    def evaluate(self, context) -> bool:
-        text = _perform(self.predicate, context).strip().lower()
-        if text not in ("true", "1", "false", "0"):
-            raise ValueError(f"IfCondition on {text!r}")
-        return text in ("true", "1")
-
-
 def _launch_ros_value(value, context=None):
     """A node parameter value as launch_ros (normalize + evaluate) hands it to the node."""
-    if isinstance(value, _Substitution):
+    if isinstance(value, _LaunchConfiguration):
         parsed = yaml.safe_load(value.perform(context))
         if not isinstance(parsed, bool | int | float | str | list):
             raise TypeError(f"launch_ros refuses {type(parsed)} (a substitution gave "
@@ -102,9 +72,7 @@ def run_launch_file(path: Path, **arguments: str) -> dict[str, tuple[str, str, d
         "launch": types.SimpleNamespace(LaunchDescription=list),
         "launch.actions": types.SimpleNamespace(DeclareLaunchArgument=DeclareLaunchArgument,
                                                 OpaqueFunction=OpaqueFunction),
-        "launch.conditions": types.SimpleNamespace(IfCondition=_IfCondition),
-        "launch.substitutions": types.SimpleNamespace(LaunchConfiguration=_LaunchConfiguration,
-                                                      PythonExpression=_PythonExpression),
+        "launch.substitutions": types.SimpleNamespace(LaunchConfiguration=_LaunchConfiguration),
         "launch_ros.actions": types.SimpleNamespace(Node=Node),
     }
     # ipmc_control.launching imports launch: load it afresh against this stand-in
@@ -129,8 +97,6 @@ def run_launch_file(path: Path, **arguments: str) -> dict[str, tuple[str, str, d
         function(context)
     launched = {}
     for kw in nodes:
-        if kw.get("condition") is not None and not kw["condition"].evaluate(context):
-            continue
         params = {}
         for block in kw.get("parameters", ()):
             params.update({k: _launch_ros_value(v, context) for k, v in block.items()})
