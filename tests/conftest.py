@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import pytest
@@ -121,8 +122,39 @@ def spin_until(node, predicate, timeout_s: float, context=None) -> bool:
         executor.remove_node(node)
 
 
+def call_service(node, client, request, timeout_s: float = 10.0, retry_s: float = 2.0,
+                 server_log=None):
+    """Call ``client`` with ``request`` and return the response; repeat the call when no answer
+    comes within ``retry_s`` seconds, until ``timeout_s`` seconds have passed.
+
+    ``wait_for_service`` is true once the server's request reader is matched, but the server's
+    response writer may not yet have matched this client's reader; rmw_fastrtps then waits
+    100 ms and drops the response (ros2/ros2#1253). On a loaded machine that loses a first call.
+    Only idempotent requests (parameter sets, reloads) are called this way. ``server_log``, a
+    callable, adds the server's log to the failure message."""
+    deadline = time.monotonic() + timeout_s
+    assert client.wait_for_service(timeout_sec=timeout_s), f"no service {client.srv_name}"
+    while True:
+        future = client.call_async(request)
+        left = deadline - time.monotonic()
+        if spin_until(node, future.done, min(retry_s, max(left, 0.0))):
+            return future.result()
+        client.remove_pending_request(future)
+        if time.monotonic() >= deadline:
+            raise AssertionError(f"{client.srv_name} did not answer within {timeout_s} s"
+                                 + (f"; the server's log:\n{server_log()}" if server_log else ""))
+        # Shown in pytest's warning summary, so a CI log says how often the race struck.
+        warnings.warn(f"{client.srv_name}: no answer within {retry_s} s, calling again",
+                      stacklevel=2)
+
 
 @pytest.fixture
 def spin():
     """The :func:`spin_until` helper, as a fixture."""
     return spin_until
+
+
+@pytest.fixture
+def call():
+    """The :func:`call_service` helper, as a fixture."""
+    return call_service

@@ -11,6 +11,7 @@ fitted here on 30 s of the simulated plant, fixed-size LSSVM with 200 centres) r
 
 from __future__ import annotations
 
+import functools
 import signal
 import time
 
@@ -117,27 +118,25 @@ def test_controller_falls_back_when_model_server_dies_and_recovers(
         node.destroy_node()
 
 
-def _set(node, client, spin, **values):
-    assert client.wait_for_service(timeout_sec=10.0), "controller parameter service missing"
+def _set(node, client, call, log, **values):
     req = SetParameters.Request(parameters=[
         Parameter(k, value=v).to_parameter_msg() for k, v in values.items()])
-    future = client.call_async(req)
-    assert spin(node, future.done, 10.0), "set_parameters did not answer"
-    return future.result().results
+    return call(node, client, req, timeout_s=20.0, server_log=log).results
 
 
-def test_controller_parameters_validated_at_run_time(processes, rclpy_context, spin):
+def test_controller_parameters_validated_at_run_time(processes, rclpy_context, call):
     processes.start_node("controller", "controller")
     node = rclpy.create_node("control_params_test", context=rclpy_context)
     try:
         probe = Probe(node)
-        (res,) = _set(node, probe.params, spin, ti_s=-1.0)
+        log = functools.partial(processes.log, "controller")
+        (res,) = _set(node, probe.params, call, log, ti_s=-1.0)
         assert not res.successful and "ti_s must be > 0" in res.reason
-        (res,) = _set(node, probe.params, spin, mode="open")
+        (res,) = _set(node, probe.params, call, log, mode="open")
         assert not res.successful and "mode must be one of" in res.reason
-        (res,) = _set(node, probe.params, spin, u_clamp_min=5.0)
+        (res,) = _set(node, probe.params, call, log, u_clamp_min=5.0)
         assert not res.successful and "u_clamp_min must be < u_clamp_max" in res.reason
-        results = _set(node, probe.params, spin, k=2.0, ti_s=0.5, mode="pid")
+        results = _set(node, probe.params, call, log, k=2.0, ti_s=0.5, mode="pid")
         assert all(r.successful for r in results), [r.reason for r in results]
     finally:
         node.destroy_node()

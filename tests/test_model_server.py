@@ -103,28 +103,24 @@ class Probe:
         self.refs.append((_stamp_ns(msg), r_mm))
         self.pub_ref.publish(msg)
 
-    def call_reload(self, spin, timeout_s: float = 10.0):
+    def call_reload(self, call, timeout_s: float = 10.0):
         from std_srvs.srv import Trigger
 
-        future = self.reload.call_async(Trigger.Request())
-        assert spin(self.node, future.done, timeout_s), "no answer from /model_server/reload"
-        return future.result()
+        return call(self.node, self.reload, Trigger.Request(), timeout_s=timeout_s)
 
-    def set_parameter(self, spin, name: str, value):
+    def set_parameter(self, call, name: str, value):
         """Set one parameter of model_server; return its SetParametersResult."""
         from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
         from rcl_interfaces.srv import SetParameters
 
         if not hasattr(self, "_params"):
             self._params = self.node.create_client(SetParameters, "/model_server/set_parameters")
-        assert self._params.wait_for_service(timeout_sec=5.0)
         pv = (ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
               if isinstance(value, float)
               else ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value))
-        future = self._params.call_async(
-            SetParameters.Request(parameters=[Parameter(name=name, value=pv)]))
-        assert spin(self.node, future.done, 5.0), "no answer from set_parameters"
-        return future.result().results[0]
+        return call(self.node, self._params,
+                    SetParameters.Request(parameters=[Parameter(name=name, value=pv)]),
+                    timeout_s=10.0).results[0]
 
     def latest(self, concern: str):
         found = [s for s in self.diag if s.name == f"model_server: {concern}"]
@@ -136,7 +132,7 @@ def _value(status, key: str) -> str:
 
 
 def test_serves_feedforward_prediction_residual_and_reload(
-        model_files, processes, rclpy_context, spin):
+        model_files, processes, rclpy_context, spin, call):
     forward, forward_file, inverse, inverse_file = model_files
     processes.start_node("sim_plant", "sim_plant", {"rate_hz": 100.0})
     processes.start_node("model_server", "model_server", {
@@ -208,16 +204,16 @@ def test_serves_feedforward_prediction_residual_and_reload(
 
         # (4) Reload: a good file succeeds; a corrupt one keeps the old model and says why.
         assert probe.reload.wait_for_service(timeout_sec=5.0)
-        good = probe.call_reload(spin)
+        good = probe.call_reload(call)
         assert good.success, good.message
         forward_file.write_text('{"format": "ipmc-ros-model", not json')
-        bad = probe.call_reload(spin)
+        bad = probe.call_reload(call)
         assert not bad.success
         assert "forward.json" in bad.message and "JSON" in bad.message, bad.message
         assert "kept the models in use" in bad.message
         n_pred, n_ff = len(probe.got["predicted"]), len(probe.got["feedforward"])
         # ... and with the applied voltages as the inverse model's history (the default).
-        assert probe.set_parameter(spin, "history_voltage", "applied").successful
+        assert probe.set_parameter(call, "history_voltage", "applied").successful
         probe.start_driving()
         assert spin(node, lambda: len(probe.got["predicted"]) > n_pred + 100
                     and len(probe.got["feedforward"]) > n_ff + 50, 10.0), \
@@ -237,7 +233,7 @@ def test_serves_feedforward_prediction_residual_and_reload(
 
 
 def test_starts_without_a_good_file_and_loads_it_on_reload(
-        model_files, processes, rclpy_context, spin, tmp_path):
+        model_files, processes, rclpy_context, spin, call, tmp_path):
     forward, forward_file, _, _ = model_files
     target = tmp_path / "late.json"
     processes.start_node("model_server", "model_server", {"model_file": target})
@@ -248,20 +244,20 @@ def test_starts_without_a_good_file_and_loads_it_on_reload(
         assert spin(node, lambda: probe.latest("model") is not None, 5.0)
         assert probe.latest("model").level == b"\x02"
         assert "no such model file" in probe.latest("model").message
-        missing = probe.call_reload(spin)
+        missing = probe.call_reload(call)
         assert not missing.success and "no model served" in missing.message
         from ipmc_model.persistence import save_model
 
         save_model(forward, target)
-        late = probe.call_reload(spin)
+        late = probe.call_reload(call)
         assert late.success, late.message
         assert "lssvm-narx" in late.message
 
         # The feedforward limit can be lowered at run time, never raised past 3 V.
-        too_high = probe.set_parameter(spin, "u_max_v", 5.0)
+        too_high = probe.set_parameter(call, "u_max_v", 5.0)
         assert not too_high.successful and "u_max_v" in too_high.reason
-        assert probe.set_parameter(spin, "u_max_v", 2.0).successful
-        assert not probe.set_parameter(spin, "history_voltage", "measured").successful
+        assert probe.set_parameter(call, "u_max_v", 2.0).successful
+        assert not probe.set_parameter(call, "history_voltage", "measured").successful
     finally:
         node.destroy_node()
     assert processes.stop("model_server") < GRACE_S
