@@ -190,11 +190,12 @@ def graph_specs(*, rig_port: str | None, lockstep: bool, model: str | None, mode
     return specs
 
 
-def mode_needs_model(mode: str, model: str | None) -> str | None:
-    """Why ``mode`` cannot run without a feedforward model file, or None if it can."""
+def mode_needs_model(mode: str, model: str | None, given_as: str = "a model") -> str | None:
+    """Why ``mode`` cannot run without a feedforward model file, or None if it can;
+    ``given_as`` names how the user gives one (``--model`` on the command line)."""
     if mode != "pid" and not model:
-        return (f"mode {mode} needs a model (an inverse model file, or a forward model with "
-                "voltage channels); use mode pid without one")
+        return (f"mode {mode} needs {given_as} (an inverse model file from 'ipmc identify "
+                "--inverse', or a forward model with voltage channels); use mode pid without one")
     return None
 
 
@@ -280,9 +281,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=0.0,
                         help="stop after this many wall seconds (default: until Ctrl-C)")
     args = parser.parse_args(argv)
-    if mode_needs_model(args.mode, args.model):
-        parser.error(f"--mode {args.mode} needs --model (an inverse model file, or a forward "
-                     "model with voltage channels)")
+    why = mode_needs_model(args.mode, args.model, "--model")
+    if why:
+        parser.error(why)
     specs = graph_specs(rig_port=args.rig, lockstep=args.lockstep, model=args.model,
                         mode=args.mode, reference=args.reference,
                         plant_effects=args.plant_effect, record=args.record)

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .bringup import mode_needs_model
 from .experiment import (
     DEFAULT_DURATION_S,
     REFERENCE_KIND,
@@ -56,9 +57,9 @@ def load_feedforward(path: str | None, mode: str):
     """
     if mode == "pid":
         return None
-    if not path:
-        raise ValueError(f"mode '{mode}' needs --model (an inverse model file from "
-                         "'ipmc identify --inverse')")
+    why = mode_needs_model(mode, path, "--model")
+    if why:
+        raise ValueError(why)
     from ipmc_model.forward_inversion import ForwardInversionFeedforward
     from ipmc_model.narx import InverseNarxModel, NarxModel
     from ipmc_model.persistence import load_model
