@@ -808,7 +808,8 @@ def fit_creep_on_holds(r, u, dt_s: float, taus, *, nuisance_tau_s: float | None 
     dict
         ``holds`` (usable G), ``skip_s``, and when G >= ``min_holds``: ``tau_s``,
         ``gain_mm_per_v``, ``at_edge`` (tau is the grid's longest: only g / tau is determined,
-        the hold drift looks like a ramp), ``fast_tau_s``, ``nuisance_tau_s``,
+        the hold drift looks like a ramp), ``at_short_edge`` (tau is the grid's shortest: the
+        drift is not told from the plant's own settling), ``fast_tau_s``, ``nuisance_tau_s``,
         ``nuisance_mm_per_v`` (its gain),
         ``segments`` (list of (start, stop) samples), ``oof_state``, an (N,) array: in each
         used hold the creep state (mm) predicted by the fit on the *other* holds (leave one hold
@@ -882,7 +883,7 @@ def fit_creep_on_holds(r, u, dt_s: float, taus, *, nuisance_tau_s: float | None 
         fi, ti, gi, _, _ = solve(keep)
         oof[s:e] = gi[fi, ti] * bases[ti][s:e]
     out.update(tau_s=float(taus[t]), gain_mm_per_v=float(g[f, t]), at_edge=bool(t == T - 1),
-               fast_tau_s=float(fast_taus_s[f]),
+               at_short_edge=bool(t == 0), fast_tau_s=float(fast_taus_s[f]),
                nuisance_tau_s=None if nuis is None else float(nuisance_tau_s),
                nuisance_mm_per_v=float(h[f, t]), segments=segs, oof_state=oof,
                profile=np.column_stack([taus, g[f], sse[f]]))
