@@ -127,14 +127,15 @@ ROW_SHARES = (0.9, 0.8)
 #: baseline's own path-memory error (docs/diagnose.md, "Forward creep").
 #: Not with memory channels in the baseline: they are low-passed voltages, and with them a
 #: clean record passed the hold test.
-IN_DATA_EFFECTS = ("dead_zone", "creep")
+#: The keys: those effects; the values: how the report introduces each (a dead zone the
+#: baseline represents is not missing; a creep that is there is, but adding it does not lower
+#: the held-out error).
+IN_DATA_HEAD = {"dead_zone": "in the data but not missing from the model",
+                "creep": "in the data, not added"}
+IN_DATA_EFFECTS = tuple(IN_DATA_HEAD)
 IN_DATA_TEXT = ("a refit-free test finds it in the data, but adding it does not lower the "
                 "held-out error enough to accept it (a baseline fitted on the record itself "
                 "represents much of a static input map)")
-#: How the report introduces an effect in the data: a dead zone the baseline represents is
-#: not missing; a creep that is there is, but adding it does not lower the held-out error.
-IN_DATA_HEAD = {"dead_zone": "in the data but not missing from the model",
-                "creep": "in the data, not added"}
 CREEP_IN_DATA_TEXT = ("the residual keeps drifting during input holds as this creep predicts, "
                       "but adding it does not lower the held-out error enough to accept it "
                       "(a creep in the input's own direction can partly cancel the baseline's "
