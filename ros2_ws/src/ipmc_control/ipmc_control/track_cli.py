@@ -132,7 +132,7 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     timeout_s = timeout_s or 90.0 + 3.0 * duration_s
     context = rclpy.Context()
     # rclpy's own SIGINT handler only shuts the context down, and the wait loop below then never
-    # ends: Ctrl-C must raise KeyboardInterrupt here, so the Graph stops every node on the way out.
+    # ends: Ctrl-C and SIGTERM are noted (_StopSignals) and raised by the wait loop instead.
     from rclpy.signals import SignalHandlerOptions
 
     rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
@@ -152,6 +152,7 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     def spin_until(predicate, limit_s, what):
         deadline = time.monotonic() + limit_s
         while not predicate():
+            stop.raise_if_signalled()
             if graph.failed():
                 name, code = next(iter(graph.failed().items()))
                 raise RuntimeError(f"{name} exited with code {code}:\n{graph.log_tail(name)}")
@@ -160,7 +161,7 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
             executor.spin_once(timeout_sec=0.05)
 
     t_wall = time.monotonic()
-    old_sigterm = _sigterm_raises()
+    stop = _StopSignals()
     try:
         with Graph(env, work / "logs") as graph:
             plant_spec: NodeSpec = next(s for s in specs if s.name == "sim_plant")
@@ -183,6 +184,7 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
             # This probe sees every node; let the nodes see each other too (the controller
             # must know model_server is there to wait for its first feedforward).
             time.sleep(DISCOVERY_SETTLE_S)
+            stop.raise_if_signalled()
             # The plant's clock starts only when it has matched every listener (DDS matches,
             # not the graph's list: lockstep_min_subscribers): a late match would cut the
             # start of the recording.
@@ -195,11 +197,11 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
             exits = graph.stop_all(order=["reference", "controller", "model_server",
                                           "sim_plant", "recorder"])
     finally:
-        if old_sigterm is not None:
-            signal.signal(signal.SIGTERM, old_sigterm)
+        stop.restore()
         executor.remove_node(node)
         node.destroy_node()
         rclpy.try_shutdown(context=context)
+    stop.raise_if_signalled()    # one that came while the graph stopped at the end of the run
     slow = {n: t for n, t in exits.items() if t > 2.0}
     if slow:
         print(f"warning: slow exits after SIGINT: {slow}", file=log)
@@ -231,17 +233,41 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     return summary
 
 
-def _sigterm_raises():
-    """SIGTERM (a scheduler's or a test runner's stop) unwinds like Ctrl-C, so that the Graph
-    stops every node it started (killed outright, they ran on as orphans); returns the old
-    handler, or None off the main thread, where no handler can be set."""
-    if threading.current_thread() is not threading.main_thread():
-        return None
+class _StopSignals:
+    """Ctrl-C (SIGINT) and a scheduler's or a test runner's stop (SIGTERM), noted by their
+    handlers and raised by ``raise_if_signalled`` in the wait loop: KeyboardInterrupt, or
+    SystemExit(143) for SIGTERM. Unwinding, the Graph stops every node it started (killed
+    outright, they ran on as orphans).
 
-    def on_sigterm(signum, frame):
-        raise SystemExit(128 + signum)
+    Raising from the handler itself could land inside rclpy's C++ message conversion, which
+    turns it into "RuntimeError: Unable to convert call argument" (``ipmc track`` then exited 2,
+    not 143), or inside rclpy's ``Future.__del__``, where it is only printed and the run goes
+    on; node_runtime follows the same rule. A signal during the Graph's stop is noted and does
+    not cut it short. Off the main thread no handler can be set: nothing is noted.
+    """
 
-    return signal.signal(signal.SIGTERM, on_sigterm)
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.signalled: list[int] = []
+        self._previous: dict[int, object] = {}
+        if threading.current_thread() is threading.main_thread():
+            self._previous = {s: signal.signal(s, self._note) for s in self.SIGNALS}
+
+    def _note(self, signum: int, frame) -> None:
+        self.signalled.append(signum)
+
+    def raise_if_signalled(self) -> None:
+        if not self.signalled:
+            return
+        if self.signalled[0] == signal.SIGINT:
+            raise KeyboardInterrupt
+        raise SystemExit(128 + self.signalled[0])
+
+    def restore(self) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous = {}
 
 
 def _count_in_log(path: Path, text: str) -> int:
