@@ -1,10 +1,10 @@
 """``ipmc track --graph`` leaves its wait loop on SIGTERM with exit 143 and on Ctrl-C with
 KeyboardInterrupt, also while messages pour in: the signal is noted by its handler and raised
-between callbacks (``track_cli._StopSignals``), never inside rclpy's C++ message conversion,
+between callbacks (``node_runtime.StopSignals``), never inside rclpy's C++ message conversion,
 which turned it into "RuntimeError: Unable to convert call argument" and exit 2, or into an
 "Exception ignored" in a ``__del__`` and a process that ran on. Session 17, this loop run
 longer: with the signal raised in the handler 24 of 84 runs failed (23 exited 2, 1 ran on);
-with ``_StopSignals`` 0 of 100."""
+with ``StopSignals`` 0 of 100."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ import time
 
 import pytest
 
-from ipmc_control.track_cli import _StopSignals
+from ipmc_driver.node_runtime import StopSignals
 
 PUBLISHER = textwrap.dedent("""
     import rclpy
@@ -48,7 +48,7 @@ PROBE = textwrap.dedent("""
     from geometry_msgs.msg import PointStamped
     from rclpy.qos import QoSProfile, QoSReliabilityPolicy
     from rclpy.signals import SignalHandlerOptions
-    from ipmc_control.track_cli import _StopSignals
+    from ipmc_driver.node_runtime import StopSignals
     context = rclpy.Context()
     rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node("stop_signal_probe", context=context)
@@ -59,7 +59,7 @@ PROBE = textwrap.dedent("""
                                  lambda m: got.__setitem__(0, got[0] + 1), qos)
     executor = rclpy.executors.SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    stop = _StopSignals()
+    stop = StopSignals()
     try:
         while True:
             stop.raise_if_signalled()
@@ -81,7 +81,7 @@ PROBE = textwrap.dedent("""
                                             (signal.SIGINT, KeyboardInterrupt)])
 def test_stop_signal_is_noted_then_raised_by_the_wait_loop(signum, raised):
     before = signal.getsignal(signum)
-    stop = _StopSignals()
+    stop = StopSignals()
     try:
         os.kill(os.getpid(), signum)    # the handler runs here and must not raise
         assert stop.signalled == [signum]
@@ -95,12 +95,25 @@ def test_stop_signal_is_noted_then_raised_by_the_wait_loop(signum, raised):
 
 
 def test_nothing_raised_without_a_signal():
-    stop = _StopSignals()
+    stop = StopSignals()
     try:
         stop.raise_if_signalled()
         assert stop.signalled == []
     finally:
         stop.restore()
+
+
+def test_ignore_lets_a_cleanup_run_through_a_second_signal():
+    """run_node's cleanup: after ignore() a signal is neither noted nor acted on."""
+    before = signal.getsignal(signal.SIGTERM)
+    stop = StopSignals()
+    try:
+        stop.ignore()
+        os.kill(os.getpid(), signal.SIGTERM)   # would end this process if not ignored
+        assert stop.signalled == []
+    finally:
+        stop.restore()
+    assert signal.getsignal(signal.SIGTERM) is before
 
 
 def test_sigterm_under_message_load_exits_143(ros_env, tmp_path):

@@ -20,10 +20,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -105,6 +103,7 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
         read_stamped_series,
         stamp_ns,
     )
+    from ipmc_driver.node_runtime import StopSignals
 
     from .bringup import Graph, NodeSpec, graph_specs
 
@@ -132,7 +131,8 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     timeout_s = timeout_s or 90.0 + 3.0 * duration_s
     context = rclpy.Context()
     # rclpy's own SIGINT handler only shuts the context down, and the wait loop below then never
-    # ends: Ctrl-C and SIGTERM are noted (_StopSignals) and raised by the wait loop instead.
+    # ends: Ctrl-C and SIGTERM are noted (StopSignals) and raised by the wait loop instead,
+    # KeyboardInterrupt and SystemExit(143), so the Graph stops every node on the way out.
     from rclpy.signals import SignalHandlerOptions
 
     rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
@@ -161,7 +161,7 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
             executor.spin_once(timeout_sec=0.05)
 
     t_wall = time.monotonic()
-    stop = _StopSignals()
+    stop = StopSignals()
     try:
         with Graph(env, work / "logs") as graph:
             plant_spec: NodeSpec = next(s for s in specs if s.name == "sim_plant")
@@ -231,43 +231,6 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     print(f"graph run: {len(stamps)} samples in {time.monotonic() - t_wall:.1f} s wall; "
           f"bag {bag}", file=log)
     return summary
-
-
-class _StopSignals:
-    """Ctrl-C (SIGINT) and a scheduler's or a test runner's stop (SIGTERM), noted by their
-    handlers and raised by ``raise_if_signalled`` in the wait loop: KeyboardInterrupt, or
-    SystemExit(143) for SIGTERM. Unwinding, the Graph stops every node it started (killed
-    outright, they ran on as orphans).
-
-    Raising from the handler itself could land inside rclpy's C++ message conversion, which
-    turns it into "RuntimeError: Unable to convert call argument" (``ipmc track`` then exited 2,
-    not 143), or inside rclpy's ``Future.__del__``, where it is only printed and the run goes
-    on; node_runtime follows the same rule. A signal during the Graph's stop is noted and does
-    not cut it short. Off the main thread no handler can be set: nothing is noted.
-    """
-
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-    def __init__(self) -> None:
-        self.signalled: list[int] = []
-        self._previous: dict[int, object] = {}
-        if threading.current_thread() is threading.main_thread():
-            self._previous = {s: signal.signal(s, self._note) for s in self.SIGNALS}
-
-    def _note(self, signum: int, frame) -> None:
-        self.signalled.append(signum)
-
-    def raise_if_signalled(self) -> None:
-        if not self.signalled:
-            return
-        if self.signalled[0] == signal.SIGINT:
-            raise KeyboardInterrupt
-        raise SystemExit(128 + self.signalled[0])
-
-    def restore(self) -> None:
-        for signum, handler in self._previous.items():
-            signal.signal(signum, handler)
-        self._previous = {}
 
 
 def _count_in_log(path: Path, text: str) -> int:
