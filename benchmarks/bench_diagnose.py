@@ -100,8 +100,8 @@ CASES = [
 
 def effects(tmp, seeds=(0, 1, 2), only=None):
     print("| plant effect (not told) | seconds | seed | found | free-run RMSE before (mm) | "
-          "after (mm) | wall (s) | fitted |")
-    print("|---|---|---|---|---|---|---|---|")
+          "after (mm) | wall (s) | fitted | in the data, not accepted |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for label, eff, seconds, *holds in CASES:
         if only and not label.startswith(only):
             continue
@@ -112,11 +112,14 @@ def effects(tmp, seeds=(0, 1, 2), only=None):
             code, sec, s = run_cli(p, Path(tmp) / stem)
             fitted = "; ".join(f"{c['effect']}: {c['evidence'].get('describe', '')}"
                                for c in s.get("candidates", []) if c["accepted"])
+            named = ", ".join(dict.fromkeys(
+                c["effect"] for c in s.get("candidates", [])
+                if c["evidence"].get("in_data") and not c["accepted"])) or "none"
             print(f"| {label} | {seconds:.0f} | {seed} | "
                   f"{', '.join(s.get('effects_found', [])) or 'none'} | "
                   f"{s.get('rmse_before_mm', float('nan')):.4f} | "
-                  f"{s.get('rmse_after_mm', float('nan')):.4f} | {sec:.0f} | {fitted} |",
-                  flush=True)
+                  f"{s.get('rmse_after_mm', float('nan')):.4f} | {sec:.0f} | {fitted} | "
+                  f"{named} |", flush=True)
 
 
 CREEP_SIZES = [("clean", {}), ("tau 20 s, -0.12 mm/V (default)", {"creep": {}}),

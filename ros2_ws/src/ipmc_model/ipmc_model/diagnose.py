@@ -76,6 +76,7 @@ from .effects import (
     fit_effect,
     fit_frozen_effect,
     mask_model_settling,
+    saturation_test,
     save_augmented,
 )
 from .lssvm import LSSVMRegressor
@@ -127,15 +128,20 @@ ROW_SHARES = (0.9, 0.8)
 #: baseline's own path-memory error (docs/diagnose.md, "Forward creep").
 #: Not with memory channels in the baseline: they are low-passed voltages, and with them a
 #: clean record passed the hold test.
+#: Saturation (session 18): the Wiener ARX scan (:func:`saturation_in_data`) on the fit data as
+#: the final model sees them, when saturation was not accepted: named on 12 of 21 saturation
+#: records (1.5-3 mm at 1.5-3 V; 4 of 4 at 1.5 mm), on 1 of 14 without one (asymmetry 0.7 at
+#: 1.5 V; none of 6 clean) (docs/diagnose.md, "Saturation in the data").
 #: The keys: those effects; the values: how the report introduces each (a dead zone the
 #: baseline represents is not missing; a creep that is there is, but adding it does not lower
 #: the held-out error).
 IN_DATA_HEAD = {"dead_zone": "in the data but not missing from the model",
-                "creep": "in the data, not added"}
+                "creep": "in the data, not added",
+                "saturation": "in the data but not missing from the model"}
 IN_DATA_EFFECTS = tuple(IN_DATA_HEAD)
 IN_DATA_TEXT = ("a refit-free test finds it in the data, but adding it does not lower the "
                 "held-out error enough to accept it (a baseline fitted on the record itself "
-                "represents much of a static input map)")
+                "represents much of a static input or output map)")
 CREEP_IN_DATA_TEXT = ("the residual keeps drifting during input holds as this creep predicts, "
                       "but adding it does not lower the held-out error enough to accept it "
                       "(a creep in the input's own direction can partly cancel the baseline's "
@@ -155,6 +161,15 @@ def in_data_text(c: Candidate) -> str:
         return (f"{ev['describe']}; hold test on {hd.get('holds')} holds, drift "
                 f"{hd.get('beta', float('nan')):.2f} x the predicted, 95 % lower bound "
                 f"{hd.get('lower', float('nan')):.2f}): {CREEP_IN_DATA_TEXT}")
+    if c.effect == "saturation":
+        # the block's limit (refits scored on held-back data) is the better estimate; the
+        # scan's overestimates a soft limit whose knee alone the data reach
+        sc = ev["saturation_scan"]
+        block = f"{ev['describe']}; " if "describe" in ev else ""
+        return (f"{block}Wiener ARX scan: a symmetric output limit, {sc['limit_mm']:.3g} mm by "
+                f"the scan, the output peaking at {sc['peak_mm']:.3g} mm, p = "
+                f"{sc['p_value']:.2g}, Bonferroni over {sc['limits_tested']} limits): "
+                f"{IN_DATA_TEXT}")
     return (f"{ev['describe']}; refit-free test p = {ev['test']['p_value']:.2g}): "
             f"{IN_DATA_TEXT}")
 
@@ -243,7 +258,8 @@ class Diagnosis:
 
     def in_data(self) -> list[Candidate]:
         """Effects that their own test finds in the data (:data:`IN_DATA_EFFECTS`: the dead
-        zone's refit-free width scan, creep's hold test) but that were not accepted: adding
+        zone's refit-free width scan, creep's hold test, the saturation scan of
+        :func:`saturation_in_data`) but that were not accepted: adding
         them does not lower the held-out error enough (:func:`in_data_text`). The first
         candidate of each (evidence ``in_data`` True)."""
         out: dict[str, Candidate] = {}
@@ -344,6 +360,18 @@ def _refit_free_test(name: str, t: dict) -> dict:
                 f"{'; at the scan edge' if t['at_edge'] else ''})")
     return {"r": float(t["rss_ratio"] - 1.0), "bound": 0.0, "significant": ok,
             "ratio": float(t["rss_ratio"]), "text": text, "test": dict(t)}
+
+
+def saturation_in_data(current: AugmentedModel, u, y) -> dict:
+    """:func:`~ipmc_model.effects.saturation_test` on the fit data (u, y) as ``current``'s
+    baseline sees them (an input effect or drift found is taken out; memory channels: the
+    voltage), with ``significant``: p below :data:`REFIT_FREE_ALPHA`, not at the grid's edge,
+    not refused."""
+    v, z = current.to_baseline_space(u, y)
+    scan = saturation_test(v if v.ndim == 1 else v[:, 0], z, current.dt_s)
+    scan["significant"] = bool(not scan["refused"] and not scan["at_edge"]
+                               and scan["p_value"] < REFIT_FREE_ALPHA)
+    return scan
 
 
 def _creep_hold_test(current: AugmentedModel, eff, u, y, cut, free_cur) -> dict:
@@ -704,6 +732,13 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
         say(f"accepted {best.effect}: held-out free-run RMSE now {rmse_cur:.4f} mm")
     for c in evaluated:
         c.model = None if not c.accepted else c.model
+    sat = [c for c in evaluated if c.effect == "saturation"]
+    if model is None and sat and "saturation" not in found:
+        # A baseline fitted on the record absorbs a static output limit, so no refit gains on
+        # it; the data are asked directly, as the final model's baseline sees them (a drift
+        # found first is taken out: its gain loss passed the scan at 1.5 V, docs/diagnose.md).
+        sat[-1].evidence["saturation_scan"] = scan = saturation_in_data(current, uf, yf)
+        sat[-1].evidence["in_data"] = scan["significant"]
     d = Diagnosis(before, current, rmse_before, rmse_cur, evaluated, found, ana_before,
                   ana_cur, t, u, y, cut, tuning, threshold, time.perf_counter() - t0_wall,
                   notes=[shift["text"]])

@@ -1049,6 +1049,24 @@ DZ_HOLD_S = 0.5
 DZ_MIN_MOVING_SHARE = 0.5
 
 
+def _moving_rows(u: np.ndarray, dt_s: float, first: int) -> tuple[np.ndarray, float]:
+    """Regression rows from ``first`` on that lie outside input holds of >= :data:`DZ_HOLD_S`
+    (there the response is the plant's settling, not its static map), and their share."""
+    from .residuals import find_holds
+
+    moving = np.ones(u.size, dtype=bool)
+    for a, b in find_holds(u, dt_s, DZ_HOLD_S):
+        moving[a:b] = False
+    rows = np.arange(first, u.size)
+    rows = rows[moving[rows]]
+    return rows, rows.size / u.size
+
+
+def _input_nuisance(lags_u: list) -> list:
+    """The clean IPMC's smooth static input nonlinearities: |u|, u|u|, u^3 at each input lag."""
+    return [f for uj in lags_u for f in (np.abs(uj), uj * np.abs(uj), uj ** 3)]
+
+
 def dead_zone_test(u, y, dt_s: float, *, output_lags: int = 4, input_lags: int = 3,
                    n_widths: int = 25, max_width_share: float = 0.5) -> dict:
     """Dead-zone width of the record from Hammerstein ARX one-step fits (refit-free evidence).
@@ -1080,18 +1098,11 @@ def dead_zone_test(u, y, dt_s: float, *, output_lags: int = 4, input_lags: int =
     """
     from scipy import stats
 
-    from .residuals import find_holds
-
     u = as_signal("u", u)
     y = as_signal("y", y)
     same_length(u=u, y=y)
     na, nb = int(output_lags), int(input_lags)
-    moving = np.ones(u.size, dtype=bool)
-    for a, b in find_holds(u, dt_s, DZ_HOLD_S):
-        moving[a:b] = False
-    rows = np.arange(max(na, nb), u.size)
-    rows = rows[moving[rows]]
-    share = rows.size / u.size
+    rows, share = _moving_rows(u, dt_s, max(na, nb))
     umax = float(np.max(np.abs(u)))
     out = {"width_v": 0.0, "p_value": 1.0, "rss_ratio": 1.0, "at_edge": False,
            "moving_share": float(share), "refused": False, "widths_tested": int(n_widths)}
@@ -1101,8 +1112,7 @@ def dead_zone_test(u, y, dt_s: float, *, output_lags: int = 4, input_lags: int =
     lags_u = [u[rows - j] for j in range(nb)]
     lags_y = [y[rows - i] for i in range(1, na + 1)]
     y1 = y[rows - 1]
-    nuisance = [f for uj in lags_u for f in (np.abs(uj), uj * np.abs(uj), uj ** 3)]
-    nuisance += [np.abs(y1), y1 * np.abs(y1), np.ones(rows.size)]
+    nuisance = _input_nuisance(lags_u) + [np.abs(y1), y1 * np.abs(y1), np.ones(rows.size)]
     target = y[rows]
 
     def rss(w):
@@ -1121,6 +1131,85 @@ def dead_zone_test(u, y, dt_s: float, *, output_lags: int = 4, input_lags: int =
         dof = rows.size - n_par - 1
         F = (r0 - r[d]) / (r[d] / dof)
         out["p_value"] = float(min(1.0, n_widths * stats.f.sf(F, 1, dof)))
+    return out
+
+
+#: Saturation scan (:func:`saturation_test`): limits tried, as multiples of the record's
+#: largest |y| (from one the data nearly reach to one that hardly bends them).
+SAT_SCAN_RANGE = (1.01, 3.0)
+
+
+def saturation_test(u, y, dt_s: float, *, output_lags: int = 4, input_lags: int = 3,
+                    n_limits: int = 25) -> dict:
+    """Symmetric output limit of the record from Wiener ARX one-step fits (refit-free evidence).
+
+    For every limit L on a log grid (:data:`SAT_SCAN_RANGE` x max |y|, ``n_limits`` values) the
+    output is taken back through the plant's soft limit, x = L artanh(y / L), and an ARX
+    x_k = sum_i a_i x_{k-i} + sum_j b_j u_{k-j} + nuisance + c is fitted by weighted least
+    squares (weights (1 - (y/L)^2)^2: the residual in mm, to first order); its prediction is
+    taken forward, L tanh(x / L), and scored in mm against the same ARX with no limit. The
+    nuisance terms stand for the clean IPMC's smooth maps (its positive side saturates softly,
+    its negative side stiffens): |u|, u|u|, u^3 at each input lag and |x|, x|x|, x^3 at each
+    output lag. The cube is what tells a limit from a knee: a limit must flatten the output
+    beyond what a cubic bends it (measured, docs/diagnose.md: without the cube, dead-zone,
+    asymmetry and drift records at 1.5 V passed as saturated).
+
+    Rows inside input holds and the refusal of a mostly held input: as :func:`dead_zone_test`.
+    Evidence: F test (1 dof) of the ARX at the scanned limit against no limit,
+    Bonferroni-corrected for the ``n_limits`` limits tried; a limit at either end of the grid is
+    no finding (the smallest hugs the data's peak; the largest hardly bends them).
+
+    Returns
+    -------
+    dict
+        ``limit_mm`` (the scan's limit: on a soft limit the data only reach the knee of, it
+        overestimates), ``p_value`` (corrected; 1.0 when no limit beats none), ``rss_ratio``
+        RSS(no limit) / RSS(limit), ``at_edge``, ``peak_mm`` (max |y|), ``moving_share``,
+        ``refused``, ``limits_tested``.
+    """
+    from scipy import stats
+
+    u = as_signal("u", u)
+    y = as_signal("y", y)
+    same_length(u=u, y=y)
+    na, nb = int(output_lags), int(input_lags)
+    rows, share = _moving_rows(u, dt_s, max(na, nb))
+    peak = float(np.max(np.abs(y)))
+    out = {"limit_mm": 0.0, "p_value": 1.0, "rss_ratio": 1.0, "at_edge": False,
+           "peak_mm": peak, "moving_share": float(share), "refused": False,
+           "limits_tested": int(n_limits)}
+    if share < DZ_MIN_MOVING_SHARE or rows.size < 20 * (4 * na + 4 * nb + 1) or peak <= 0:
+        out["refused"] = True
+        return out
+    lags_u = [u[rows - j] for j in range(nb)]
+    fixed = lags_u + _input_nuisance(lags_u) + [np.ones(rows.size)]
+    target = y[rows]
+
+    def rss(limit):
+        if np.isfinite(limit):
+            q = np.clip(y / limit, -0.999, 0.999)
+            x = limit * np.arctanh(q)
+            sw = 1.0 - q[rows] ** 2
+        else:
+            x, sw = y, np.ones(rows.size)
+        lags_x = [x[rows - i] for i in range(1, na + 1)]
+        X = np.column_stack(lags_x + fixed + [f for xi in lags_x
+                                              for f in (np.abs(xi), xi * np.abs(xi), xi ** 3)])
+        coef, *_ = np.linalg.lstsq(X * sw[:, None], x[rows] * sw, rcond=None)
+        x_hat = X @ coef
+        e = target - (limit * np.tanh(x_hat / limit) if np.isfinite(limit) else x_hat)
+        return float(e @ e), X.shape[1]
+
+    r0, n_par = rss(np.inf)
+    limits = peak * np.geomspace(*SAT_SCAN_RANGE, n_limits)
+    r = np.array([rss(L)[0] for L in limits])
+    d = int(np.argmin(r))
+    out.update(limit_mm=float(limits[d]), rss_ratio=float(r0 / r[d]) if r[d] > 0 else 1.0,
+               at_edge=bool(d in (0, n_limits - 1)))
+    if r[d] < r0:
+        dof = rows.size - n_par - 1
+        F = (r0 - r[d]) / (r[d] / dof)
+        out["p_value"] = float(min(1.0, n_limits * stats.f.sf(F, 1, dof)))
     return out
 
 

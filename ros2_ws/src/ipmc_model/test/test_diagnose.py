@@ -347,6 +347,45 @@ def test_report_names_an_effect_in_the_data_that_the_baseline_already_represents
     assert "In the data but not missing from the model: **dead_zone**" in report
 
 
+@pytest.mark.parametrize("effect", ["saturation", "none"])
+def test_report_names_a_saturation_in_the_data(tmp_path, effect):
+    """Mixed 3 V, seed 8 (not used to design the scan), 120 s at 50 Hz, a 2 mm limit: the
+    baseline fitted on the record absorbs it (nothing accepted), the Wiener ARX scan finds it,
+    and the report says so; the clean record says nothing."""
+    from ipmc_model.diagnose import in_data_text, write_report
+
+    t, u = mixed(120.0, RATE, 3.0, band_hz=(0.02, 0.8), seed=8)
+    fx = {"saturation": {"limit_mm": 2.0}} if effect != "none" else {}
+    y = IpmcPlant(effects=fx, seed=8, dt_s=1 / RATE).run(u).y_mm
+    d = diagnose(t, u, y)
+    sat = [c for c in d.candidates if c.effect == "saturation"]
+    scan = sat[-1].evidence["saturation_scan"]
+    write_report(d, tmp_path)
+    report = (tmp_path / "report.md").read_text()
+    if effect == "none":
+        assert not scan["significant"] and d.in_data() == []
+        assert "**saturation**" not in report
+        return
+    assert "saturation" not in d.effects_found
+    assert [c.effect for c in d.in_data()] == ["saturation"]
+    assert scan["significant"] and 2.0 < scan["limit_mm"] < 2.6
+    assert "Wiener ARX scan" in in_data_text(d.in_data()[0])
+    assert "In the data but not missing from the model: **saturation**" in report
+
+
+def test_a_drift_found_is_no_saturation_in_the_data():
+    """Random sine 1.5 V, seed 0 (used to design the scan), 120 s at 50 Hz, drift 0.1 /min and
+    0.3 mm/min: on the raw record the gain loss passes the saturation scan (2.34 mm, p 2e-4);
+    the scan asks the data as the final model sees them, drift taken out, and finds none."""
+    t, u = random_sine(120.0, RATE, 1.5, (0.02, 0.8), seed=0)
+    fx = {"drift": {"gain_loss_per_min": 0.1, "offset_mm_per_min": 0.3}}
+    y = IpmcPlant(effects=fx, seed=0, dt_s=1 / RATE).run(u).y_mm
+    d = diagnose(t, u, y)
+    assert d.effects_found == ["drift"]
+    scan = [c for c in d.candidates if c.effect == "saturation"][-1].evidence["saturation_scan"]
+    assert not scan["significant"] and d.in_data() == []
+
+
 def test_memory_channels_are_not_for_a_given_model(day1_model):
     t, u, y = _mixed_record({}, seed=5, seconds=20.0)
     with pytest.raises(ValueError, match="memory channels"):

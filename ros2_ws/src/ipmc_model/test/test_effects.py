@@ -19,6 +19,7 @@ from ipmc_model.effects import (
     fit_frozen_effect,
     load_augmented,
     mask_model_settling,
+    saturation_test,
     save_augmented,
 )
 from ipmc_model.errors import ModelFileError
@@ -429,6 +430,46 @@ def test_dead_zone_test_finds_the_plant_width(seed):
         else:
             assert t["p_value"] < 1e-3 and not t["at_edge"], (fx, t)
             assert t["width_v"] == pytest.approx(width, abs=0.04)
+
+
+@pytest.mark.parametrize("seed", [8, 9])  # seeds 8, 9 not used to design the scan
+def test_saturation_test_finds_an_output_limit_and_no_other_effect(seed):
+    # 120 s of `ipmc simulate --input mixed --amplitude 3` at 50 Hz, the fit part (70 %): the
+    # clean plant's own soft positive saturation (8 mm) and negative stiffening are no limit,
+    # nor are the other static or slow effects
+    _, u = mixed(120.0, RATE, 3.0, band_hz=(0.02, 0.8), seed=seed)
+    cut = int(0.7 * u.size)
+    for fx, limit in (({}, None), ({"asymmetry": {}}, None), ({"dead_zone": {}}, None),
+                      ({"drift": {}}, None), ({"creep": {}}, None),
+                      ({"saturation": {"limit_mm": 2.0}}, 2.0),
+                      ({"saturation": {"limit_mm": 1.5}}, 1.5)):
+        y = IpmcPlant(effects=fx, seed=seed, dt_s=1 / RATE).run(u).y_mm
+        t = saturation_test(u[:cut], y[:cut], 1 / RATE)
+        assert not t["refused"] and t["limits_tested"] == 25
+        if limit is None:
+            assert t["p_value"] > 1e-3 or t["at_edge"], (fx, t)
+        else:
+            assert t["p_value"] < 1e-3 and not t["at_edge"], (fx, t)
+            # the scan's limit lies above the peak the data reach, near the plant's
+            assert t["peak_mm"] < t["limit_mm"] < 1.3 * limit, (fx, t)
+
+
+@pytest.mark.parametrize("effect", ["dead_zone", "asymmetry"])
+def test_saturation_test_takes_no_other_static_map_for_a_limit(effect):
+    # random sine 1.5 V, seed 0 (used to design the scan): without the cube among the output
+    # nuisance terms, both records passed as saturated (1.34 mm, p 3e-13; 1.83 mm, p 4e-17)
+    _, u = random_sine(120.0, RATE, 1.5, (0.02, 0.8), seed=0)
+    cut = int(0.7 * u.size)
+    y = IpmcPlant(effects={effect: {}}, seed=0, dt_s=1 / RATE).run(u).y_mm
+    t = saturation_test(u[:cut], y[:cut], 1 / RATE)
+    assert t["p_value"] > 1e-3 or t["at_edge"], t
+
+
+def test_saturation_test_refuses_a_step_input():
+    _, u = random_steps(120.0, RATE, 2.5, seed=6)
+    y = IpmcPlant(effects={"saturation": {"limit_mm": 2.0}}, seed=6, dt_s=1 / RATE).run(u).y_mm
+    t = saturation_test(u, y, 1 / RATE)
+    assert t["refused"] and t["p_value"] == 1.0
 
 
 def test_dead_zone_test_refuses_a_step_input():
