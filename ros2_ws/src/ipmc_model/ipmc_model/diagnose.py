@@ -162,8 +162,8 @@ def in_data_text(c: Candidate) -> str:
                 f"{hd.get('beta', float('nan')):.2f} x the predicted, 95 % lower bound "
                 f"{hd.get('lower', float('nan')):.2f}): {CREEP_IN_DATA_TEXT}")
     if c.effect == "saturation":
-        # the block's limit (refits scored on held-back data) is the better estimate; the
-        # scan's overestimates a soft limit whose knee alone the data reach
+        # both limits: the block's (refits scored on held-back data) is often the closer but
+        # can land far off; the scan's overestimates a soft limit the data reach the knee of
         sc = ev["saturation_scan"]
         block = f"{ev['describe']}; " if "describe" in ev else ""
         return (f"{block}Wiener ARX scan: a symmetric output limit, {sc['limit_mm']:.3g} mm by "

@@ -41,7 +41,8 @@ fit data (creep: from the residual's drift during input holds, :func:`fit_creep_
 on a log grid from seconds to minutes, gain in closed form; without holds from the whole
 residual), and the baseline is then refitted on the data with the effect removed. The delay
 and the dead-zone width come from linear ARX scans on the fit data (:func:`dead_time_test`,
-:func:`dead_zone_test`), and the NARX is refitted once through them. The
+:func:`dead_zone_test`), and the NARX is refitted once through them (a saturation's
+:func:`saturation_test` is evidence only: the diagnosis names a limit it finds). The
 other effects change what the NARX sees, so the baseline NARX is refitted on the data seen
 through the effect (input transformed; saturation: output through artanh) for each value of a
 one-dimensional parameter grid, scored by free-run RMSE on an internal validation slice (the
@@ -1049,17 +1050,24 @@ DZ_HOLD_S = 0.5
 DZ_MIN_MOVING_SHARE = 0.5
 
 
-def _moving_rows(u: np.ndarray, dt_s: float, first: int) -> tuple[np.ndarray, float]:
-    """Regression rows from ``first`` on that lie outside input holds of >= :data:`DZ_HOLD_S`
-    (there the response is the plant's settling, not its static map), and their share."""
+def _scan_rows(u, y, dt_s: float, first: int, n_par: int):
+    """The static-map scans' data: (u, y) checked, the regression rows from ``first`` on that
+    lie outside input holds of >= :data:`DZ_HOLD_S` (there the response is the plant's
+    settling, not its static map), their share of the record, and whether the scan must
+    refuse (fewer than :data:`DZ_MIN_MOVING_SHARE` moving, or fewer than 20 rows per
+    parameter of its ``n_par``)."""
     from .residuals import find_holds
 
+    u = as_signal("u", u)
+    y = as_signal("y", y)
+    same_length(u=u, y=y)
     moving = np.ones(u.size, dtype=bool)
     for a, b in find_holds(u, dt_s, DZ_HOLD_S):
         moving[a:b] = False
     rows = np.arange(first, u.size)
     rows = rows[moving[rows]]
-    return rows, rows.size / u.size
+    share = rows.size / u.size
+    return u, y, rows, share, bool(share < DZ_MIN_MOVING_SHARE or rows.size < 20 * n_par)
 
 
 def _input_nuisance(lags_u: list) -> list:
@@ -1098,15 +1106,12 @@ def dead_zone_test(u, y, dt_s: float, *, output_lags: int = 4, input_lags: int =
     """
     from scipy import stats
 
-    u = as_signal("u", u)
-    y = as_signal("y", y)
-    same_length(u=u, y=y)
     na, nb = int(output_lags), int(input_lags)
-    rows, share = _moving_rows(u, dt_s, max(na, nb))
+    u, y, rows, share, refuse = _scan_rows(u, y, dt_s, max(na, nb), na + 4 * nb + 3)
     umax = float(np.max(np.abs(u)))
     out = {"width_v": 0.0, "p_value": 1.0, "rss_ratio": 1.0, "at_edge": False,
            "moving_share": float(share), "refused": False, "widths_tested": int(n_widths)}
-    if share < DZ_MIN_MOVING_SHARE or rows.size < 20 * (na + 4 * nb + 3) or umax <= 0:
+    if refuse or umax <= 0:
         out["refused"] = True
         return out
     lags_u = [u[rows - j] for j in range(nb)]
@@ -1169,16 +1174,13 @@ def saturation_test(u, y, dt_s: float, *, output_lags: int = 4, input_lags: int 
     """
     from scipy import stats
 
-    u = as_signal("u", u)
-    y = as_signal("y", y)
-    same_length(u=u, y=y)
     na, nb = int(output_lags), int(input_lags)
-    rows, share = _moving_rows(u, dt_s, max(na, nb))
+    u, y, rows, share, refuse = _scan_rows(u, y, dt_s, max(na, nb), 4 * na + 4 * nb + 1)
     peak = float(np.max(np.abs(y)))
     out = {"limit_mm": 0.0, "p_value": 1.0, "rss_ratio": 1.0, "at_edge": False,
            "peak_mm": peak, "moving_share": float(share), "refused": False,
            "limits_tested": int(n_limits)}
-    if share < DZ_MIN_MOVING_SHARE or rows.size < 20 * (4 * na + 4 * nb + 1) or peak <= 0:
+    if refuse or peak <= 0:
         out["refused"] = True
         return out
     lags_u = [u[rows - j] for j in range(nb)]
