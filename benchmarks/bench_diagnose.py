@@ -100,8 +100,8 @@ CASES = [
 
 def effects(tmp, seeds=(0, 1, 2), only=None):
     print("| plant effect (not told) | seconds | seed | found | free-run RMSE before (mm) | "
-          "after (mm) | wall (s) | fitted | in the data, not accepted |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "after (mm) | wall (s) | fitted | in the data, not accepted | undecided (holds) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for label, eff, seconds, *holds in CASES:
         if only and not label.startswith(only):
             continue
@@ -115,11 +115,16 @@ def effects(tmp, seeds=(0, 1, 2), only=None):
             named = ", ".join(dict.fromkeys(
                 c["effect"] for c in s.get("candidates", [])
                 if c["evidence"].get("in_data") and not c["accepted"])) or "none"
+            # as Diagnosis.undecided: the latest round's candidate of each effect
+            last = {c["effect"]: c for c in s.get("candidates", [])}
+            undecided = ", ".join(
+                f"{c['effect']} ({c['evidence']['hold_drift']['holds']})" for c in last.values()
+                if c["evidence"].get("undecided") and not c["accepted"]) or "none"
             print(f"| {label} | {seconds:.0f} | {seed} | "
                   f"{', '.join(s.get('effects_found', [])) or 'none'} | "
                   f"{s.get('rmse_before_mm', float('nan')):.4f} | "
                   f"{s.get('rmse_after_mm', float('nan')):.4f} | {sec:.0f} | {fitted} | "
-                  f"{named} |", flush=True)
+                  f"{named} | {undecided} |", flush=True)
 
 
 CREEP_SIZES = [("clean", {}), ("tau 20 s, -0.12 mm/V (default)", {"creep": {}}),

@@ -147,6 +147,19 @@ CREEP_IN_DATA_TEXT = ("the residual keeps drifting during input holds as this cr
                       "(a creep in the input's own direction can partly cancel the baseline's "
                       "path-memory error, which taking the creep out uncovers)")
 
+#: A creep that gains on a record without input holds (session 19): the record cannot tell it
+#: from path memory, so it is neither accepted nor named in the data, but the report says the
+#: model lacks a slow memory and which record would decide. A rate-independent path-memory
+#: channel (the voltage's travel, fading as a Bouc-Wen state does) given to the baseline took
+#: the creep's gain on random sines away, on clean and creep records alike (docs/diagnose.md,
+#: "Creep or path memory: undecided without holds").
+UNDECIDED_HEAD = "undecided for lack of input holds"
+CREEP_UNDECIDED_TEXT = ("on a moving input a creep (which fades with time) and the actuator's "
+                        "path memory (which fades with the input's travel, and the travel "
+                        "grows with time) fit the same; the model lacks one of them. Record "
+                        "input holds of several seconds (e.g. random steps held 3-10 s) to "
+                        "tell them apart")
+
 METRIC = ("free-run RMSE (mm) on the held-out last 30 % of the record, simulated from the "
           "input alone after the first max-lag measured samples (skipped), with the input "
           "history of the fit part warming the effects' states")
@@ -172,6 +185,18 @@ def in_data_text(c: Candidate) -> str:
                 f"{IN_DATA_TEXT}")
     return (f"{ev['describe']}; refit-free test p = {ev['test']['p_value']:.2g}): "
             f"{IN_DATA_TEXT}")
+
+
+def undecided_text(c: Candidate) -> str:
+    """The sentence saying why the creep candidate ``c`` (evidence ``undecided`` True) gains
+    but is neither accepted nor named: the record has too few input holds."""
+    ev = c.evidence
+    hd = ev.get("hold_drift", {})
+    paired = ", ".join(f"{100 * g:+.0f}" for g in ev.get("paired_improvements", []))
+    return (f"a slow term on the input, {ev['describe']}, lowers the held-out free-run RMSE "
+            f"by {100 * ev['improvement']:.0f} % (refitted on other rows {paired} %); "
+            f"{hd.get('holds')} usable input holds, the hold test needs "
+            f"{hd.get('min_holds')}): {CREEP_UNDECIDED_TEXT}")
 
 
 #: Grid of the baseline's cheap tuning (sigma in standard deviations of the 13 standardised
@@ -268,6 +293,15 @@ class Diagnosis:
                     and c.effect not in out):
                 out[c.effect] = c
         return list(out.values())
+
+    def undecided(self) -> list[Candidate]:
+        """Effects that gain on the held-out data but that the record cannot tell from another
+        (creep or path memory, without input holds: :func:`undecided_text`): the last
+        candidate of each (the latest round's) when its evidence says
+        ``undecided``; none accepted."""
+        last = {c.effect: c for c in self.candidates}
+        return [c for c in last.values()
+                if c.evidence.get("undecided") and c.effect not in self.effects_found]
 
 
 #: Input-shift warning (:func:`input_shift`): the held-out part's 95 % input bandwidth differs
@@ -621,7 +655,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                 else:
                     test = {"r": 0.0, "bound": 1.0, "significant": False, "ratio": 0.0,
                             "text": f"{name} signature not finite"}
-            hold = None
+            hold, alone = None, False
             if name == "creep":
                 # Creep must also show in time: the residual keeps drifting during input holds
                 # as the fitted creep predicts. The clean plant's path memory (Bouc-Wen) is
@@ -630,6 +664,8 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                 hold = _creep_hold_test(current, eff, u, y, cut, ana_cur["free_run"])
                 fit = getattr(eff, "hold_fit_", None) or {}
                 edge = bool(fit.get("at_edge"))
+                # its own signature test: with too few holds the record cannot decide
+                alone = bool(test["significant"] and test["r"] > 0)
                 text = f"{test['text']}; {hold['text']}"
                 if "tau_s" in fit:
                     text += (f"; creep fitted on the drift in {fit['holds']} fit-part holds"
@@ -665,9 +701,12 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                 # Around a given model the gain also holds the refit's own gain: the spread.
                 need = (CREEP_GAIN_SHARE * threshold if paired_creep
                         else max(CREEP_GAIN_SHARE * threshold, 2.0 * spread))
+            # a creep the record cannot test in time (too few holds) but that gains: undecided
+            no_holds = (hold is not None and hold["holds"] < hold["min_holds"] and alone
+                        and not frozen)
             gains = [gain]
-            if ((name in REFIT_EFFECTS or paired_creep) and not frozen and test["significant"]
-                    and gain >= need):
+            if ((name in REFIT_EFFECTS or paired_creep or no_holds) and not frozen
+                    and (test["significant"] or no_holds) and gain >= need):
                 # the gain must not hang on the rows the LSSVM happened to be fitted on
                 gains += paired_gains(current, eff, variants)
             change = (free - ana_cur["free_run"])[L:]
@@ -701,6 +740,8 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                 ev["in_data"] = bool(creep_on_holds and hold["significant"] and not edge
                                      and not fit.get("at_short_edge") and material
                                      and "memory" not in current.effect_names)
+                ev["undecided"] = bool(no_holds and len(gains) > 1 and min(gains) >= need
+                                       and material)
                 ev["creep_fit"] = {"method": "holds" if "tau_s" in fit else "whole residual",
                                    **{k: fit[k] for k in ("holds", "skip_s", "at_edge",
                                                           "at_short_edge",
@@ -744,6 +785,8 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                   notes=[shift["text"]])
     for c in d.in_data():
         say(f"{IN_DATA_HEAD[c.effect]}: {c.effect} ({in_data_text(c)}")
+    for c in d.undecided():
+        say(f"{UNDECIDED_HEAD}: {c.effect} or path memory ({undecided_text(c)}")
     return d
 
 
@@ -819,6 +862,9 @@ def _markdown(d: Diagnosis, s: dict, figs: list[str], label: str) -> str:
     for c in d.in_data():
         lines += [f"{IN_DATA_HEAD[c.effect].capitalize()}: **{c.effect}** "
                   f"({in_data_text(c)}.", ""]
+    for c in d.undecided():
+        lines += [f"{UNDECIDED_HEAD.capitalize()}: **{c.effect}** or path memory "
+                  f"({undecided_text(c)}.", ""]
     lines += [f"Note: {n}." for n in d.notes] + ([""] if d.notes else [])
     if d.model_after.effects:
         lines += ["## Fitted effects (physical units)", "", "| effect | parameter | value | "

@@ -100,6 +100,8 @@ def test_creep_found_with_undeclared_parameters(seed, creep):
     assert d.rmse_after_mm < 0.9 * d.rmse_before_mm
     accepted = next(c for c in d.candidates if c.accepted and c.effect == "creep")
     assert accepted.evidence["hold_drift"]["significant"]
+    # decided by the holds: not "undecided for lack of input holds"
+    assert not accepted.evidence["undecided"] and d.undecided() == []
     # tau and gain from the drift during the holds: near the plant's (before the hold fit:
     # seed 1 gave tau 28 s, -2.7 mm/V on 90 s, and the demo's record tau 3.6 s, -0.24 mm/V)
     assert accepted.evidence["creep_fit"]["method"] == "holds"
@@ -192,6 +194,38 @@ def test_creep_without_holds_is_not_accepted():
     assert d.effects_found == []
     c = d.candidates[0]
     assert c.evidence["improvement"] >= 0.1 and c.evidence["hold_drift"]["holds"] == 0
+    # but it gains with every row budget: the report says creep or path memory is missing,
+    # undecided for lack of holds
+    assert min(c.evidence["paired_improvements"]) >= 0.1
+    assert c.evidence["undecided"] and d.undecided() == [c] and d.in_data() == []
+
+
+@pytest.mark.parametrize("kind", ["random-sine", "steps"])
+def test_report_says_creep_or_path_memory_undecided_without_holds(tmp_path, kind):
+    """`ipmc simulate` 3 V, seed 4 (not used to design anything), 120 s at 50 Hz, the plant's
+    default creep: on a random sine (no input holds) a slow term on the input gains but cannot
+    be told from path memory, and the report says so and which record would decide; on random
+    steps (holds) the hold test decides and nothing is undecided."""
+    from ipmc_driver.simulate_cli import main as simulate
+
+    csv = tmp_path / "data.csv"
+    assert simulate(["--input", kind, "--amplitude", "3", "--seconds", "120", "--rate-hz",
+                     "50", "--seed", "4", "--effect", "creep", "--out", str(csv)]) == 0
+    out = tmp_path / "report"
+    assert main(["--data", str(csv), "--report", str(out), "--seed", "0"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary) == KEYS
+    report = (out / "report.md").read_text()
+    undecided = [c for c in summary["candidates"] if c["evidence"].get("undecided")]
+    if kind == "steps":
+        assert undecided == [] and "Undecided" not in report
+        return
+    assert summary["effects_found"] == []
+    assert [c["effect"] for c in undecided] == ["creep"]
+    assert undecided[0]["evidence"]["hold_drift"]["holds"] < 3
+    assert min(undecided[0]["evidence"]["paired_improvements"]) >= 0.1
+    assert "Undecided for lack of input holds: **creep** or path memory" in report
+    assert "Record input holds" in report
 
 
 @pytest.mark.parametrize("seed, delay_s", [
