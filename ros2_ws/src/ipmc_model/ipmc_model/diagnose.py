@@ -157,8 +157,7 @@ UNDECIDED_HEAD = "undecided for lack of input holds"
 CREEP_UNDECIDED_TEXT = ("on a moving input a creep (which fades with time) and the actuator's "
                         "path memory (which fades with the input's travel, and the travel "
                         "grows with time) fit the same; the model lacks one of them. Record "
-                        "input holds of several seconds (e.g. random steps held 3-10 s) to "
-                        "tell them apart")
+                        "input holds of at least that length to tell them apart")
 
 METRIC = ("free-run RMSE (mm) on the held-out last 30 % of the record, simulated from the "
           "input alone after the first max-lag measured samples (skipped), with the input "
@@ -195,8 +194,17 @@ def undecided_text(c: Candidate) -> str:
     paired = ", ".join(f"{100 * g:+.0f}" for g in ev.get("paired_improvements", []))
     return (f"a slow term on the input, {ev['describe']}, lowers the held-out free-run RMSE "
             f"by {100 * ev['improvement']:.0f} % (refitted on other rows {paired} %); "
-            f"{hd.get('holds')} usable input holds, the hold test needs "
-            f"{hd.get('min_holds')}): {CREEP_UNDECIDED_TEXT}")
+            f"{hd.get('holds')} usable input holds (constant for >= {hd.get('min_hold_s'):g} "
+            f"s), the hold test needs {hd.get('min_holds')}): {CREEP_UNDECIDED_TEXT}")
+
+
+def _statements(d: Diagnosis) -> list[tuple[str, str, str, str]]:
+    """What the report says beyond the effects found, for the progress line and report.md:
+    (lead phrase, effect, what follows its name, the sentence in parentheses) per effect in
+    the data (:meth:`Diagnosis.in_data`) and per undecided one (:meth:`Diagnosis.undecided`)."""
+    return ([(IN_DATA_HEAD[c.effect], c.effect, "", in_data_text(c)) for c in d.in_data()]
+            + [(UNDECIDED_HEAD, c.effect, " or path memory", undecided_text(c))
+               for c in d.undecided()])
 
 
 #: Grid of the baseline's cheap tuning (sigma in standard deviations of the 13 standardised
@@ -701,12 +709,14 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                 # Around a given model the gain also holds the refit's own gain: the spread.
                 need = (CREEP_GAIN_SHARE * threshold if paired_creep
                         else max(CREEP_GAIN_SHARE * threshold, 2.0 * spread))
-            # a creep the record cannot test in time (too few holds) but that gains: undecided
-            no_holds = (hold is not None and hold["holds"] < hold["min_holds"] and alone
-                        and not frozen)
+            # a creep the record cannot test in time (too few holds) but whose signature
+            # passes: undecided if it gains with every row budget
+            untested_creep = (hold is not None and hold["holds"] < hold["min_holds"] and alone
+                              and not frozen)
+            pairs = ((name in REFIT_EFFECTS or paired_creep) and not frozen
+                     and test["significant"])
             gains = [gain]
-            if ((name in REFIT_EFFECTS or paired_creep or no_holds) and not frozen
-                    and (test["significant"] or no_holds) and gain >= need):
+            if (pairs or untested_creep) and gain >= need:
                 # the gain must not hang on the rows the LSSVM happened to be fitted on
                 gains += paired_gains(current, eff, variants)
             change = (free - ana_cur["free_run"])[L:]
@@ -740,8 +750,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                 ev["in_data"] = bool(creep_on_holds and hold["significant"] and not edge
                                      and not fit.get("at_short_edge") and material
                                      and "memory" not in current.effect_names)
-                ev["undecided"] = bool(no_holds and len(gains) > 1 and min(gains) >= need
-                                       and material)
+                ev["undecided"] = bool(untested_creep and min(gains) >= need and material)
                 ev["creep_fit"] = {"method": "holds" if "tau_s" in fit else "whole residual",
                                    **{k: fit[k] for k in ("holds", "skip_s", "at_edge",
                                                           "at_short_edge",
@@ -783,10 +792,8 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
     d = Diagnosis(before, current, rmse_before, rmse_cur, evaluated, found, ana_before,
                   ana_cur, t, u, y, cut, tuning, threshold, time.perf_counter() - t0_wall,
                   notes=[shift["text"]])
-    for c in d.in_data():
-        say(f"{IN_DATA_HEAD[c.effect]}: {c.effect} ({in_data_text(c)}")
-    for c in d.undecided():
-        say(f"{UNDECIDED_HEAD}: {c.effect} or path memory ({undecided_text(c)}")
+    for head, effect, tail, text in _statements(d):
+        say(f"{head}: {effect}{tail} ({text}")
     return d
 
 
@@ -859,12 +866,8 @@ def _markdown(d: Diagnosis, s: dict, figs: list[str], label: str) -> str:
                      f"{a['one_step_tests']['ljung_box_p']:.3g} | "
                      f"{ft.get('acf_outside', float('nan')):.2f} |")
     lines += ["", f"Effects found: **{', '.join(s['effects_found']) or 'none'}**.", ""]
-    for c in d.in_data():
-        lines += [f"{IN_DATA_HEAD[c.effect].capitalize()}: **{c.effect}** "
-                  f"({in_data_text(c)}.", ""]
-    for c in d.undecided():
-        lines += [f"{UNDECIDED_HEAD.capitalize()}: **{c.effect}** or path memory "
-                  f"({undecided_text(c)}.", ""]
+    for head, effect, tail, text in _statements(d):
+        lines += [f"{head.capitalize()}: **{effect}**{tail} ({text}.", ""]
     lines += [f"Note: {n}." for n in d.notes] + ([""] if d.notes else [])
     if d.model_after.effects:
         lines += ["## Fitted effects (physical units)", "", "| effect | parameter | value | "

@@ -311,8 +311,8 @@ def hold_drift_test(r, x, u, dt_s: float, *, skip_s: float = HOLD_SKIP_S,
     Returns
     -------
     dict
-        ``holds`` (usable G), ``min_holds``, ``beta``, ``se``, ``lower`` (bound),
-        ``significant``, ``text``.
+        ``holds`` (usable G), ``min_holds``, ``min_hold_s`` (the shortest usable hold, s),
+        ``beta``, ``se``, ``lower`` (bound), ``significant``, ``text``.
     """
     r = as_signal("r", r, allow_nan=True)
     x = as_signal("x", x, allow_nan=True)
@@ -345,7 +345,7 @@ def hold_drift_test(r, x, u, dt_s: float, *, skip_s: float = HOLD_SKIP_S,
     G = len(blocks)
     out = {"holds": G, "beta": float("nan"), "se": float("nan"), "lower": float("nan"),
            "significant": False, "skip_s": float(skip_s), "beta_min": float(beta_min),
-           "min_holds": int(min_holds)}
+           "min_holds": int(min_holds), "min_hold_s": float(skip_s + min_use_s)}
     sxx = sum(float(bx @ bx) for _, bx in blocks)
     if G < min_holds or sxx <= 0.0:
         out["text"] = (f"drift during holds: {G} usable input hold(s) (constant input for >= "
