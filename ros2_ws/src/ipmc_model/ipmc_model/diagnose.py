@@ -115,9 +115,9 @@ BASELINE_OUTPUT_LAGS = 0
 #: NARX must gain ``threshold`` with each of them too, against the current model refitted on
 #: the same rows.
 ROW_SHARES = (0.9, 0.8)
-#: Effects whose own test says the data carry them (reported even when not accepted). Not
-#: delay: its dead-time scan is also significant on clean 1 V random sines
-#: (0.10-0.14 s, p < 1e-46: the plant's charging lag), so a delay needs the held-out gain.
+#: Effects whose own test says the data carry them (reported even when not accepted).
+#: Delay (session 20): the dead-time scan, when the dead time is one (:func:`is_dead_time`)
+#: (docs/diagnose.md, "Delay in the data").
 #: The dead-zone scan was significant on none of 20 records without a dead zone (11 clean, 9
 #: with another effect) and on 6 of 6 dead-zone records, at 0.30-0.32 V (docs/diagnose.md,
 #: "In the data, not missing").
@@ -137,11 +137,15 @@ ROW_SHARES = (0.9, 0.8)
 #: the held-out error).
 IN_DATA_HEAD = {"dead_zone": "in the data but not missing from the model",
                 "creep": "in the data, not added",
-                "saturation": "in the data but not missing from the model"}
+                "saturation": "in the data but not missing from the model",
+                "delay": "in the data but not missing from the model"}
 IN_DATA_EFFECTS = tuple(IN_DATA_HEAD)
 IN_DATA_TEXT = ("a refit-free test finds it in the data, but adding it does not lower the "
                 "held-out error enough to accept it (a baseline fitted on the record itself "
                 "represents much of a static input or output map)")
+DELAY_IN_DATA_TEXT = ("the plant responds that late, but adding the delay does not lower the "
+                      "held-out error enough to accept it (a baseline fitted on the record "
+                      "spans it with its input lags); a feedback loop still sees it")
 CREEP_IN_DATA_TEXT = ("the residual keeps drifting during input holds as this creep predicts, "
                       "but adding it does not lower the held-out error enough to accept it "
                       "(a creep in the input's own direction can partly cancel the baseline's "
@@ -164,6 +168,25 @@ METRIC = ("free-run RMSE (mm) on the held-out last 30 % of the record, simulated
           "history of the fit part warming the effects' states")
 
 
+#: A delay named in the data must explain this share of the one-step residual of the ARX that
+#: responds from lag 0 (RSS ratio): the weakest plant delay on an input with steps gave 1.23,
+#: the most a false one passing the other checks gave 1.016 (a drift on a 1.5 V random sine;
+#: a 0.3 V dead zone at 1 V, 1.006).
+DELAY_MIN_RSS_RATIO = 1.05
+
+
+def is_dead_time(t: dict) -> bool:
+    """Whether the dead-time scan's result ``t`` (:func:`~ipmc_model.effects.dead_time_test`)
+    shows a dead time, not a lag: the response starts d > 0 samples late (p below
+    :data:`REFIT_FREE_ALPHA`, not at the scan's edge), nothing responds before it (``p_before``
+    not below it: a smooth input shows the plant's charging lag as 4-8 samples, p < 1e-34, on
+    clean 1 V random sines, but the lags before respond, p_before < 1e-15), and it explains at
+    least :data:`DELAY_MIN_RSS_RATIO` of the residual (a drift on a 1.5 V random sine passed
+    the two tests on 5 of 6 seeds, at ratios of at most 1.016)."""
+    return bool(t["delay_samples"] > 0 and not t["at_edge"] and t["p_value"] < REFIT_FREE_ALPHA
+                and t["p_before"] >= REFIT_FREE_ALPHA and t["rss_ratio"] >= DELAY_MIN_RSS_RATIO)
+
+
 def in_data_text(c: Candidate) -> str:
     """The sentence saying why ``c`` (an unaccepted candidate with ``in_data`` evidence) is
     in the data but not added: the effect's parameters, its evidence, and the reason."""
@@ -182,6 +205,12 @@ def in_data_text(c: Candidate) -> str:
                 f"the scan, the output peaking at {sc['peak_mm']:.3g} mm, p = "
                 f"{sc['p_value']:.2g}, Bonferroni over {sc['limits_tested']} limits): "
                 f"{IN_DATA_TEXT}")
+    if c.effect == "delay":
+        t = ev["test"]
+        return (f"{ev['describe']}; ARX scan: the response starts {t['delay_samples']} "
+                f"samples after the input, p = {t['p_value']:.2g}, and the input lags before "
+                f"it add nothing, p = {t['p_before']:.2g}; RSS at lag 0 / at the dead time "
+                f"{t['rss_ratio']:.3f}): {DELAY_IN_DATA_TEXT}")
     return (f"{ev['describe']}; refit-free test p = {ev['test']['p_value']:.2g}): "
             f"{IN_DATA_TEXT}")
 
@@ -291,9 +320,10 @@ class Diagnosis:
 
     def in_data(self) -> list[Candidate]:
         """Effects that their own test finds in the data (:data:`IN_DATA_EFFECTS`: the dead
-        zone's refit-free width scan, creep's hold test, the saturation scan of
-        :func:`saturation_in_data`) but that were not accepted: adding
-        them does not lower the held-out error enough (:func:`in_data_text`). The first
+        zone's refit-free width scan, the dead-time scan when it shows a dead time
+        (:func:`is_dead_time`), creep's hold test, the saturation scan of
+        :func:`saturation_in_data`) but that were not accepted: adding them does not lower the
+        held-out error enough (:func:`in_data_text`). The first
         candidate of each (evidence ``in_data`` True)."""
         out: dict[str, Candidate] = {}
         for c in self.candidates:
@@ -739,7 +769,8 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                 ev["test"] = test["test"]
                 # the data carry the effect whatever the refit gains (a baseline fitted here
                 # may already represent it: then it is in the data, not missing)
-                ev["in_data"] = bool(test["significant"] and name in IN_DATA_EFFECTS)
+                ev["in_data"] = bool(test["significant"] and name in IN_DATA_EFFECTS
+                                     and (name != "delay" or is_dead_time(test["test"])))
             if hold is not None:
                 ev["hold_drift"] = {k: (None if isinstance(v, float) and not np.isfinite(v)
                                         else v) for k, v in hold.items() if k != "text"}

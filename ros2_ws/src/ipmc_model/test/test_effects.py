@@ -411,8 +411,21 @@ def test_dead_time_test_finds_the_plant_delay(delay_s, seed):
     assert t["delay_samples"] == expected
     if expected:
         assert t["p_value"] < 1e-3 and not t["at_edge"]
+        # a dead time: the input lags before it add nothing (0.03-0.14 on these records)
+        assert t["p_before"] >= 1e-3
     else:
-        assert t["p_value"] == 1.0
+        assert t["p_value"] == 1.0 and t["p_before"] == 1.0
+
+
+@pytest.mark.parametrize("seed", [5, 6, 7])  # not used to design the p_before check (0-4 were)
+def test_dead_time_scan_on_a_smooth_input_is_no_dead_time(seed):
+    # the clean plant on a 1 V random sine: the scan puts the response 6 samples late (the
+    # charging lag looks like a delay through a smooth input), but it starts at lag 0
+    _, u = random_sine(60, RATE, 1.0, (0.05, 0.8), 8, seed=seed)
+    y = IpmcPlant(seed=seed, dt_s=1 / RATE).run(u).y_mm
+    t = dead_time_test(u, y, 1 / RATE)
+    assert t["delay_samples"] > 0 and t["p_value"] < 1e-3
+    assert t["p_before"] < 1e-3
 
 
 @pytest.mark.parametrize("seed", [6, 7])  # seeds 6, 7 and the 0.5 V width not used to design
