@@ -175,16 +175,23 @@ METRIC = ("free-run RMSE (mm) on the held-out last 30 % of the record, simulated
 DELAY_MIN_RSS_RATIO = 1.05
 
 
+def _response_starts_late(t: dict) -> bool:
+    """The dead-time scan's evidence for a delay candidate: the response starts d > 0 samples
+    late (F test p below :data:`REFIT_FREE_ALPHA`), not at the scan's edge."""
+    return bool(t["delay_samples"] >= 1 and not t["at_edge"]
+                and t["p_value"] < REFIT_FREE_ALPHA)
+
+
 def is_dead_time(t: dict) -> bool:
     """Whether the dead-time scan's result ``t`` (:func:`~ipmc_model.effects.dead_time_test`)
-    shows a dead time, not a lag: the response starts d > 0 samples late (p below
-    :data:`REFIT_FREE_ALPHA`, not at the scan's edge), nothing responds before it (``p_before``
-    not below it: a smooth input shows the plant's charging lag as 4-8 samples, p < 1e-34, on
-    clean 1 V random sines, but the lags before respond, p_before < 1e-15), and it explains at
-    least :data:`DELAY_MIN_RSS_RATIO` of the residual (a drift on a 1.5 V random sine passed
-    the two tests on 5 of 6 seeds, at ratios of at most 1.016)."""
-    return bool(t["delay_samples"] > 0 and not t["at_edge"] and t["p_value"] < REFIT_FREE_ALPHA
-                and t["p_before"] >= REFIT_FREE_ALPHA and t["rss_ratio"] >= DELAY_MIN_RSS_RATIO)
+    shows a dead time, not a lag: the response starts late (:func:`_response_starts_late`),
+    nothing responds before it (``p_before`` not below :data:`REFIT_FREE_ALPHA`: a smooth input
+    shows the plant's charging lag as 4-8 samples, p < 1e-34, on clean 1 V random sines, but
+    the lags before respond, p_before < 1e-15), and it explains at least
+    :data:`DELAY_MIN_RSS_RATIO` of the residual (a drift on a 1.5 V random sine passed the two
+    tests on 5 of 6 seeds, at ratios of at most 1.016)."""
+    return bool(_response_starts_late(t) and t["p_before"] >= REFIT_FREE_ALPHA
+                and t["rss_ratio"] >= DELAY_MIN_RSS_RATIO)
 
 
 def in_data_text(c: Candidate) -> str:
@@ -323,8 +330,8 @@ class Diagnosis:
         zone's refit-free width scan, the dead-time scan when it shows a dead time
         (:func:`is_dead_time`), creep's hold test, the saturation scan of
         :func:`saturation_in_data`) but that were not accepted: adding them does not lower the
-        held-out error enough (:func:`in_data_text`). The first
-        candidate of each (evidence ``in_data`` True)."""
+        held-out error enough (:func:`in_data_text`). The first candidate of each (evidence
+        ``in_data`` True)."""
         out: dict[str, Candidate] = {}
         for c in self.candidates:
             if (c.evidence.get("in_data") and c.effect not in self.effects_found
@@ -424,8 +431,7 @@ def _refit_free_test(name: str, t: dict) -> dict:
                 f"F test p = {t['p_value']:.2g} (Bonferroni over {t['widths_tested']} widths), "
                 f"needs < {REFIT_FREE_ALPHA:g}{'; at the scan edge' if t['at_edge'] else ''}")
     else:
-        ok = bool(t["delay_samples"] >= 1 and not t["at_edge"]
-                  and t["p_value"] < REFIT_FREE_ALPHA)
+        ok = _response_starts_late(t)
         text = (f"ARX one-step residual: response starts {t['delay_samples']} samples after "
                 f"the input (RSS at lag 0 / at the dead time {t['rss_ratio']:.3f}, F test p = "
                 f"{t['p_value']:.2g}, needs < {REFIT_FREE_ALPHA:g}"
