@@ -139,7 +139,6 @@ IN_DATA_HEAD = {"dead_zone": "in the data but not missing from the model",
                 "creep": "in the data, not added",
                 "saturation": "in the data but not missing from the model",
                 "delay": "in the data but not missing from the model"}
-IN_DATA_EFFECTS = tuple(IN_DATA_HEAD)
 IN_DATA_TEXT = ("a refit-free test finds it in the data, but adding it does not lower the "
                 "held-out error enough to accept it (a baseline fitted on the record itself "
                 "represents much of a static input or output map)")
@@ -326,7 +325,7 @@ class Diagnosis:
     notes: list = field(default_factory=list)
 
     def in_data(self) -> list[Candidate]:
-        """Effects that their own test finds in the data (:data:`IN_DATA_EFFECTS`: the dead
+        """Effects that their own test finds in the data (:data:`IN_DATA_HEAD`: the dead
         zone's refit-free width scan, the dead-time scan when it shows a dead time
         (:func:`is_dead_time`), creep's hold test, the saturation scan of
         :func:`saturation_in_data`) but that were not accepted: adding them does not lower the
@@ -422,7 +421,10 @@ def _refit_free_test(name: str, t: dict) -> dict:
     """Evidence from a test on the fit data that does not refit the NARX (delay: the ARX
     dead-time scan, :func:`~ipmc_model.effects.dead_time_test`; dead zone: the Hammerstein ARX
     width scan, :func:`~ipmc_model.effects.dead_zone_test`), in the shape of
-    :func:`~ipmc_model.residuals.correlation_test`'s result (``r`` is the RSS ratio - 1)."""
+    :func:`~ipmc_model.residuals.correlation_test`'s result (``r`` is the RSS ratio - 1), with
+    ``in_data``: whether the test says the data carry the effect whatever the refit gains (the
+    dead zone: its scan is significant; the delay: the scan shows a dead time,
+    :func:`is_dead_time`)."""
     if name == "dead_zone":
         ok = bool(t["width_v"] > 0 and not t["at_edge"] and t["p_value"] < REFIT_FREE_ALPHA)
         text = (f"Hammerstein ARX one-step fit (smooth input and output nonlinearities as "
@@ -430,14 +432,16 @@ def _refit_free_test(name: str, t: dict) -> dict:
                 f"{t['width_v']:.3g} V, RSS at w = 0 / at the width {t['rss_ratio']:.4f}, "
                 f"F test p = {t['p_value']:.2g} (Bonferroni over {t['widths_tested']} widths), "
                 f"needs < {REFIT_FREE_ALPHA:g}{'; at the scan edge' if t['at_edge'] else ''}")
+        in_data = ok
     else:
         ok = _response_starts_late(t)
+        in_data = is_dead_time(t)
         text = (f"ARX one-step residual: response starts {t['delay_samples']} samples after "
                 f"the input (RSS at lag 0 / at the dead time {t['rss_ratio']:.3f}, F test p = "
                 f"{t['p_value']:.2g}, needs < {REFIT_FREE_ALPHA:g}"
                 f"{'; at the scan edge' if t['at_edge'] else ''})")
     return {"r": float(t["rss_ratio"] - 1.0), "bound": 0.0, "significant": ok,
-            "ratio": float(t["rss_ratio"]), "text": text, "test": dict(t)}
+            "ratio": float(t["rss_ratio"]), "text": text, "test": dict(t), "in_data": in_data}
 
 
 def saturation_in_data(current: AugmentedModel, u, y) -> dict:
@@ -775,8 +779,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                 ev["test"] = test["test"]
                 # the data carry the effect whatever the refit gains (a baseline fitted here
                 # may already represent it: then it is in the data, not missing)
-                ev["in_data"] = bool(test["significant"] and name in IN_DATA_EFFECTS
-                                     and (name != "delay" or is_dead_time(test["test"])))
+                ev["in_data"] = test["in_data"]
             if hold is not None:
                 ev["hold_drift"] = {k: (None if isinstance(v, float) and not np.isfinite(v)
                                         else v) for k, v in hold.items() if k != "text"}
