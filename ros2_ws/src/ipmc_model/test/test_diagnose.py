@@ -461,7 +461,21 @@ def test_report_names_a_saturation_in_the_data(tmp_path, effect):
     assert [c.effect for c in d.in_data()] == ["saturation"]
     assert scan["significant"] and 2.0 < scan["limit_mm"] < 2.6
     assert "Wiener ARX scan" in in_data_text(d.in_data()[0])
+    assert f"without the one of {scan['excursions']} excursions" in in_data_text(d.in_data()[0])
     assert "In the data but not missing from the model: **saturation**" in report
+
+
+def test_one_large_peak_is_no_saturation_in_the_data():
+    """Clean random sine 1 V, seed 6 (a design record), 120 s at 50 Hz: the scan's p is
+    2.7e-5 (limit 1.38 mm, the output peaking at 1.31 mm), from the bend of one peak; the
+    report names no saturation, because without that excursion the limit explains nothing."""
+    t, u = random_sine(120.0, RATE, 1.0, (0.02, 0.8), seed=6)
+    y = IpmcPlant(seed=6, dt_s=1 / RATE).run(u).y_mm
+    d = diagnose(t, u, y)
+    scan = [c for c in d.candidates if c.effect == "saturation"][-1].evidence["saturation_scan"]
+    assert scan["p_value"] < 1e-3 and not scan["at_edge"]
+    assert scan["p_without_top"] >= 1e-3
+    assert not scan["significant"] and "saturation" not in [c.effect for c in d.in_data()]
 
 
 def test_a_drift_found_is_no_saturation_in_the_data():
