@@ -1178,8 +1178,8 @@ def saturation_test(u, y, dt_s: float, *, output_lags: int = 4, input_lags: int 
     A limit acts on every excursion that reaches it, so the scan is repeated without the
     *excursion* (a run of rows with one sign of y) whose rows gain the most from the limit:
     ``p_without_top``. On 0.5-1 V records without a limit the scan's p fell below 1e-3 on 13 of
-    224 (one large peak, bent by the plant's hysteresis or a drift), and on none of them without
-    that excursion (docs/diagnose.md, "Saturation: more than one excursion").
+    224, and on none of them without that excursion (docs/diagnose.md, "Saturation: more than
+    one excursion").
 
     Returns
     -------
@@ -1225,30 +1225,29 @@ def saturation_test(u, y, dt_s: float, *, output_lags: int = 4, input_lags: int 
     limits = peak * np.geomspace(*SAT_SCAN_RANGE, n_limits)
 
     def scan(keep):
-        """(index of the best limit, RSS without a limit, RSS per limit, p) on rows ``keep``."""
-        e0 = residual(np.inf, keep)[keep]
-        r0 = float(e0 @ e0)
-        r = np.array([float(e @ e) for e in (residual(L, keep)[keep] for L in limits)])
+        """On rows ``keep``: index of the best limit, RSS without a limit and at it, p, and the
+        squared residuals (all rows) without a limit minus at it."""
+        e0 = residual(np.inf, keep)
+        es = [residual(L, keep) for L in limits]
+        r0 = float(e0[keep] @ e0[keep])
+        r = np.array([float(e[keep] @ e[keep]) for e in es])
         d = int(np.argmin(r))
         p = 1.0
         if r[d] < r0:
             dof = int(keep.sum()) - n_par - 1
             p = float(min(1.0, n_limits * stats.f.sf((r0 - r[d]) / (r[d] / dof), 1, dof)))
-        return d, r0, r, p
+        return d, r0, r[d], p, e0 ** 2 - es[d] ** 2
 
-    every = np.ones(rows.size, dtype=bool)
-    d, r0, r, p = scan(every)
-    out.update(limit_mm=float(limits[d]), rss_ratio=float(r0 / r[d]) if r[d] > 0 else 1.0,
+    d, r0, r_d, p, gain = scan(np.ones(rows.size, dtype=bool))
+    out.update(limit_mm=float(limits[d]), rss_ratio=float(r0 / r_d) if r_d > 0 else 1.0,
                at_edge=bool(d in (0, n_limits - 1)), p_value=p)
     # excursions: runs of one sign of y, cut where a hold leaves rows out
     sign = np.sign(y[rows])
     excursion = np.cumsum(np.r_[True, (sign[1:] != sign[:-1]) | (np.diff(rows) > 1)]) - 1
     out["excursions"] = int(excursion[-1] + 1)
-    gain = np.bincount(excursion, weights=residual(np.inf, every) ** 2
-                       - residual(limits[d], every) ** 2)
-    keep = excursion != int(np.argmax(gain))
+    keep = excursion != int(np.argmax(np.bincount(excursion, weights=gain)))
     if keep.sum() > 20 * n_par:
-        d2, _, _, p2 = scan(keep)
+        d2, _, _, p2, _ = scan(keep)
         out["p_without_top"] = p2 if d2 not in (0, n_limits - 1) else 1.0
     return out
 
