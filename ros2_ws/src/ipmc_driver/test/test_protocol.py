@@ -6,7 +6,7 @@ import subprocess
 import sys
 
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 
 from ipmc_driver.protocol import (
@@ -282,14 +282,17 @@ _piece = st.one_of(
     pieces=st.lists(_piece, max_size=40),
     chunk=st.integers(min_value=1, max_value=50),
 )
+@example(pieces=[("truncate", 21508368, 16), ("garbage", b"\xe0")], chunk=1)
 def test_decoder_mixed_stream_returns_exactly_the_good_frames(pieces, chunk):
     stream = bytearray()
     expected = []
+    truncated, good_starts = [], set()
     for piece in pieces:
         kind = piece[0]
         if kind == "good":
+            good_starts.add(len(stream))
             stream += sample_frame(piece[1])
-            expected.append(piece[1])
+            expected.append((len(stream) - 17, piece[1]))
         elif kind == "garbage":
             stream += piece[1]
         elif kind == "flip":
@@ -298,7 +301,16 @@ def test_decoder_mixed_stream_returns_exactly_the_good_frames(pieces, chunk):
             bad[piece[2] // 8] ^= 1 << (piece[2] % 8)
             stream += bad
         else:
+            truncated.append((len(stream), piece[1]))
             stream += sample_frame(piece[1])[: piece[2]]
+    # A truncated frame whose next bytes happen to be its missing tail is whole again (found:
+    # 16 bytes, then the garbage byte 0xe0 that was its last CRC byte): a good frame.
+    for start, counter in truncated:
+        if bytes(stream[start : start + 17]) == sample_frame(counter):
+            # its tail taken from the next good frame would break that one: left out (rare)
+            assume(not any(start < g < start + 17 for g in good_starts))
+            expected.append((start, counter))
+    expected = [counter for _, counter in sorted(expected)]
     dec = FrameDecoder()
     frames = []
     for i in range(0, len(stream), chunk):
