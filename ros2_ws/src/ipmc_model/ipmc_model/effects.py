@@ -769,6 +769,19 @@ def mask_model_settling(r, prediction, u, dt_s: float,
     return r
 
 
+def drift_removed(model: AugmentedModel, prediction, t_s) -> np.ndarray:
+    """``prediction`` (mm) of ``model`` with the model's drift taken off (the drift's
+    :meth:`Effect.backward` at the times ``t_s``, s from the start of the model's record): the
+    part the input drives, which settles in an input hold. A drift moves the prediction through
+    every hold (0.3 mm/min: 0.02 mm in 4 s), so :func:`mask_model_settling` masked nearly every
+    hold once a drift was in the model, and a creep beside it went untested."""
+    z = as_signal("prediction", prediction, allow_nan=True)
+    for e in reversed(model._outputs()):
+        if e.name == "drift":
+            z = e.backward(z, None, np.asarray(t_s, dtype=float), model.dt_s)
+    return z
+
+
 def fit_creep_on_holds(r, u, dt_s: float, taus, *, nuisance_tau_s: float | None = None,
                        skip_s: float = CREEP_HOLD_SKIP_S,
                        min_use_s: float = CREEP_HOLD_MIN_USE_S,
@@ -922,7 +935,8 @@ def _fit_creep(model, narx, u, y, t, iterations):
         if s < h < e:
             first_residual[s:e] = np.nan
     # only where the current model has stopped moving (a rate channel keeps it moving)
-    first_residual = mask_model_settling(first_residual, y - first_residual, u, dt)
+    first_residual = mask_model_settling(first_residual,
+                                         drift_removed(model, y - first_residual, t), u, dt)
     hold = fit_creep_on_holds(first_residual, u, dt,
                               creep_taus(dt, u.size * dt, mem, CREEP_HOLD_TAU_POINTS),
                               nuisance_tau_s=mem)

@@ -14,6 +14,7 @@ from ipmc_model.effects import (
     Effect,
     dead_time_test,
     dead_zone_test,
+    drift_removed,
     fit_creep_on_holds,
     fit_effect,
     fit_frozen_effect,
@@ -337,6 +338,27 @@ def test_mask_model_settling_blanks_where_the_model_still_moves():
     assert_allclose(out[:100], r[:100])  # 1 s at rest is no usable hold
     # a model constant in every hold leaves the residual as it is
     assert_allclose(mask_model_settling(r, np.zeros(u.size), u, dt), r)
+
+
+def test_drift_removed_lets_a_drifting_model_settle_in_holds(base):
+    # a model with a drift moves through every input hold (here 0.3 mm/min and a gain loss of
+    # 0.1 /min: 0.02 mm in 4 s), so the settling mask blanked the whole hold and a creep
+    # beside the drift went untested; without the drift the model is constant in each hold
+    dt = 1 / RATE
+    u = np.r_[np.zeros(100), np.full(500, 2.0), np.full(500, -1.0), np.full(500, 1.5)]
+    t = np.arange(u.size) * dt
+    z = np.where(u == 0.0, 0.0, 0.8 * u)  # the input-driven part, constant in each hold
+    drift = Effect("drift", gain_loss_per_min=0.1, offset_mm_per_min=0.3)
+    m = AugmentedModel(base.baseline, [drift], dt)
+    pred = drift.forward(z, u, t, dt)
+    assert_allclose(drift_removed(m, pred, t), z, atol=1e-12)
+    r = 0.01 * np.sin(np.arange(u.size) * 0.05)
+    blanked = mask_model_settling(r, pred, u, dt)
+    kept = mask_model_settling(r, drift_removed(m, pred, t), u, dt)
+    assert np.isnan(blanked[100:1500]).mean() > 0.9  # the hold tests saw almost no hold
+    assert_allclose(kept, r)
+    # a model without a drift: the prediction as it is
+    assert_allclose(drift_removed(base, pred, t), pred)
 
 
 def test_every_candidate_fits(record, base):
