@@ -336,8 +336,9 @@ class Diagnosis:
         :func:`saturation_in_data`) but that were not accepted: adding them does not lower the
         held-out error enough (:func:`in_data_text`). The last candidate of each (the latest
         round's: the statement is about the final model's residual) when its evidence says
-        ``in_data``: a drift at 0.3 mm/min accepted in round 2 had made the residual drift in
-        round 1's holds, and a creep was named on a record without one."""
+        ``in_data``: round 1's residual still carried a drift (0.3 mm/min) accepted at the end
+        of that round, drifted during the holds, and a creep was named on a record without
+        one."""
         last = {c.effect: c for c in self.candidates}
         return [c for c in last.values()
                 if c.evidence.get("in_data") and c.effect not in self.effects_found]

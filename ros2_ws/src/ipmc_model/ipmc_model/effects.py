@@ -776,7 +776,7 @@ def drift_removed(model: AugmentedModel, prediction, t_s) -> np.ndarray:
     every hold (0.3 mm/min: 0.02 mm in 4 s), so :func:`mask_model_settling` masked nearly every
     hold once a drift was in the model, and a creep beside it went untested."""
     z = as_signal("prediction", prediction, allow_nan=True)
-    for e in reversed(model._outputs()):
+    for e in model.effects:  # a model has at most one drift (fit_effect refuses a second)
         if e.name == "drift":
             z = e.backward(z, None, np.asarray(t_s, dtype=float), model.dt_s)
     return z
