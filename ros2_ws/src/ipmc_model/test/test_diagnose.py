@@ -528,6 +528,34 @@ def test_a_creep_the_drift_explains_is_not_named_in_the_data():
     assert "creep" not in [c.effect for c in d.in_data()]
 
 
+def test_a_limit_the_data_do_not_reach_is_not_accepted():
+    """Seed 8 of the creep beside a drift: after the drift, a refit through an output limit
+    at 2 x the data's peak (4.38 mm for 2.19 mm) gained 11.8 % (other rows +11.5, +11.2 %,
+    signature r 0.41 > 0.21) and was accepted: it flattens the peaks the missing creep would
+    have relaxed. There tanh bends the data by 7.6 % at most: a curvature, not a limit."""
+    _, u = random_steps(120.0, RATE, 1.5, seed=8)
+    run = IpmcPlant(effects={"creep": {}, **DRIFT}, seed=8, dt_s=1 / RATE).run(u)
+    d = diagnose(run.t_s, u, run.y_mm)
+    assert d.effects_found == ["drift"]
+    sat = [c for c in d.candidates if c.effect == "saturation"][-1]
+    assert sat.evidence["round"] == 2 and sat.evidence["improvement"] >= 0.1
+    assert sat.evidence["params"]["limit_mm"] > 1.5 * np.max(np.abs(run.y_mm))
+    assert not sat.evidence["significant"] and "not a limit they reach" in sat.evidence["text"]
+
+
+def test_a_limit_the_data_reach_is_accepted_without_a_model():
+    """Random sine 1.5 V, seed 10, 120 s at 50 Hz, a 1.5 mm limit the output peaks 0.17 mm
+    below: the baseline fitted on the record does not represent it, and the limit, fitted at
+    1.08 x the fit part's peak, is accepted (one of 3 of 40 saturation records)."""
+    t, u = random_sine(120.0, RATE, 1.5, seed=10)
+    y = IpmcPlant(effects={"saturation": {"limit_mm": 1.5}}, seed=10, dt_s=1 / RATE).run(u).y_mm
+    d = diagnose(t, u, y)
+    assert d.effects_found == ["saturation"]
+    assert d.rmse_after_mm < 0.9 * d.rmse_before_mm
+    limit = d.model_after.effects[0].params["limit_mm"]
+    assert 1.3 < limit < 1.5 * np.max(np.abs(y))
+
+
 def test_memory_channels_are_not_for_a_given_model(day1_model):
     t, u, y = _mixed_record({}, seed=5, seconds=20.0)
     with pytest.raises(ValueError, match="memory channels"):
