@@ -556,6 +556,25 @@ def test_a_limit_the_data_reach_is_accepted_without_a_model():
     assert 1.3 < limit < 1.5 * np.max(np.abs(y))
 
 
+def test_a_rate_channel_its_control_matches_is_not_accepted():
+    """Clean plant, random 1.5 V steps, seed 4, 120 s at 50 Hz: the rate channel (tau 0.2 s)
+    gained 15.2 % and was accepted, on a plant without a rate effect. The voltage low-passed
+    with the same tau (one lag), which carries the same linear information, gains nearly as
+    much (0.0811 mm against 0.0798 mm): the baseline's lags, 0.1 s apart, miss the fast response
+    to a step, and either channel supplies it. A rate effect must gain 10 % over that control."""
+    _, u = random_steps(120.0, RATE, 1.5, seed=4)
+    run = IpmcPlant(seed=4, dt_s=1 / RATE).run(u)
+    d = diagnose(run.t_s, u, run.y_mm)
+    assert d.effects_found == []
+    rate = [c for c in d.candidates if c.effect == "rate_dependence"][-1]
+    ev = rate.evidence
+    assert ev["improvement"] >= 0.1  # the gain that was accepted is still there
+    assert ev["improvement_over_control"] < 0.1
+    over = 1 - rate.rmse_mm / ev["control_rmse_mm"]
+    assert ev["improvement_over_control"] == pytest.approx(over)
+    assert not ev["significant"] and "not a rate effect" in ev["text"]
+
+
 def test_memory_channels_are_not_for_a_given_model(day1_model):
     t, u, y = _mixed_record({}, seed=5, seconds=20.0)
     with pytest.raises(ValueError, match="memory channels"):

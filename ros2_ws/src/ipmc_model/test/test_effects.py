@@ -84,6 +84,24 @@ def test_output_effect_backward_inverts_forward(name, params):
     assert_allclose(e.backward(e.forward(z, u, t, 0.02), u, t, 0.02), z, atol=1e-9)
 
 
+def test_the_rate_channel_is_the_voltage_and_its_low_pass_linearly():
+    """The premise of the diagnosis' control for the rate channel: lp(du/dt) = (u - lp(u)) / tau
+    (discrete: factor (1 - a) / (a dt)), up to the filters' start transient, which decays as
+    a^k. Beside the voltage, the rate channel carries no linear information the voltage's own
+    low-pass does not."""
+    dt = 0.02
+    u = np.cumsum(np.random.default_rng(0).standard_normal(500)) * 0.1
+    k = np.arange(u.size)
+    for tau in (0.04, 0.2, 1.0):
+        rate = Effect("rate_dependence", tau_s=tau).apply_input(u, dt)
+        low = Effect("memory", tau_s=tau).apply_input(u, dt)
+        a = np.exp(-dt / tau)
+        assert_allclose(rate[:, 0], u) and assert_allclose(low[:, 0], u)
+        d = rate[:, 1] - (u - low[:, 1]) * (1 - a) / (a * dt)
+        assert_allclose(d, d[0] * a ** k, atol=1e-9)
+        assert abs(d[0]) > 1e-3  # the start transient is there, and is all there is
+
+
 def test_rate_output_block_is_the_low_passed_voltage_rate_one_sample_late():
     e = Effect("rate_dependence", tau_s=0.3, gain_mm_per_v_per_s=0.1)
     assert e.side == "output" and not e.is_channel
