@@ -491,11 +491,10 @@ def _rate_control_test(current: AugmentedModel, narx: NarxModel, eff, u, y, cut:
     tau = eff.params["tau_s"]
     # one lag, as the rate channel has: refit gives a memory channel the voltage's 12 lags, a
     # second window, which is a bigger model and no control
+    # diagnose's template gives every channel it has its lags: a scalar for the voltage alone
     nx = copy.deepcopy(narx)
-    n_ch = 1 + sum(e.is_channel for e in current.effects)
     lags = nx.input_lags
-    nx.input_lags = (tuple([lags] * n_ch) if np.isscalar(lags)
-                     else tuple(lags) + (lags[0],) * (n_ch - len(lags))) + (1,)
+    nx.input_lags = ((lags,) if np.isscalar(lags) else tuple(lags)) + (1,)
     try:
         with np.errstate(all="ignore"):
             ctrl = current.refit(nx, u[:cut], y[:cut],
