@@ -96,7 +96,8 @@ def test_the_rate_channel_is_the_voltage_and_its_low_pass_linearly():
         rate = Effect("rate_dependence", tau_s=tau).apply_input(u, dt)
         low = Effect("memory", tau_s=tau).apply_input(u, dt)
         a = np.exp(-dt / tau)
-        assert_allclose(rate[:, 0], u) and assert_allclose(low[:, 0], u)
+        assert_allclose(rate[:, 0], u)
+        assert_allclose(low[:, 0], u)
         d = rate[:, 1] - (u - low[:, 1]) * (1 - a) / (a * dt)
         assert_allclose(d, d[0] * a ** k, atol=1e-9)
         assert abs(d[0]) > 1e-3  # the start transient is there, and is all there is
