@@ -252,6 +252,9 @@ def test_drift_found_with_undeclared_parameters(seed):
     assert fitted["offset_mm_per_min"] == pytest.approx(0.3, rel=0.3)
     assert 0.0 < fitted["gain_loss_per_min"] < 0.2
     assert d.rmse_after_mm < 0.8 * d.rmse_before_mm
+    # a trend in the fit part's residual too, not only a held-out gain
+    ev = next(c for c in d.candidates if c.accepted and c.effect == "drift").evidence
+    assert ev["drift_trend"]["lower"] > 0
 
 
 # -- a model from another day (given with --model): what changed since it was fitted --
@@ -573,6 +576,26 @@ def test_a_rate_channel_its_control_matches_is_not_accepted():
     over = 1 - rate.rmse_mm / ev["control_rmse_mm"]
     assert ev["improvement_over_control"] == pytest.approx(over)
     assert not ev["significant"] and "not a rate effect" in ev["text"]
+
+
+def test_a_drift_the_fit_part_does_not_trend_with_is_not_accepted():
+    """Plant creep (default, no drift), random 1.5 V steps, seed 9, 120 s at 50 Hz: after the
+    creep (right: tau 21 s, -0.14 mm/V) a drift was accepted at +18.2 % on the held-out part.
+    The fit part's residual follows the fitted drift's trend 0.80 of the way, but within its
+    slow scatter (jackknife lower bound -0.56): the held-out gain was a model error that differs
+    between the parts. A drift must show as a trend where it was fitted."""
+    _, u = random_steps(120.0, RATE, 1.5, seed=9)
+    run = IpmcPlant(effects={"creep": {}}, seed=9, dt_s=1 / RATE).run(u)
+    d = diagnose(run.t_s, u, run.y_mm)
+    assert d.effects_found == ["creep"]
+    drift = [c for c in d.candidates if c.effect == "drift"][-1].evidence
+    assert drift["round"] == 2
+    assert drift["improvement"] >= drift["threshold"]  # the gain that was accepted is there
+    trend = drift["drift_trend"]
+    assert trend["blocks"] == 20 and trend["coef"] > 0.5
+    assert trend["lower"] == pytest.approx(trend["coef"] - 1.729 * trend["se"], abs=1e-3)
+    assert trend["lower"] < 0
+    assert not drift["significant"] and "not a drift" in drift["text"]
 
 
 def test_memory_channels_are_not_for_a_given_model(day1_model):

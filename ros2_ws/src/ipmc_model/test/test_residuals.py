@@ -8,10 +8,12 @@ import sys
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
+from scipy import signal
 
 from ipmc_model.residuals import (
     ResidualMonitor,
     acf,
+    block_jackknife_coef,
     ccf,
     correlation_test,
     find_holds,
@@ -325,3 +327,50 @@ def test_noise_floor_of_the_plant_includes_its_quantisation():
 def test_noise_floor_refuses_a_record_too_short():
     with pytest.raises(ValueError, match="at least 5"):
         noise_floor([0.0, 1.0, 2.0])
+
+
+def _slow_noise(seed, n=4200):
+    """AR(1) noise with a 20-sample (0.4 s at 50 Hz) time constant, std ~0.03 mm: a free-run
+    residual's slow swings, shorter than a block of 1/20 of the record."""
+    rng = np.random.default_rng(seed)
+    return signal.lfilter([1.0], [1.0, -0.95], rng.standard_normal(n)) * 0.01
+
+
+def test_block_jackknife_keeps_slow_swings_from_passing_as_a_trend():
+    n = 4200
+    t_min = np.arange(n) / 50.0 / 60.0
+    X = np.column_stack([t_min, np.ones(n)])
+    jk, naive = [], []
+    for seed in range(40):
+        e = _slow_noise(seed, n)
+        jk.append(block_jackknife_coef(e, X)["lower"] > 0)
+        coef = np.linalg.lstsq(X, e, rcond=None)[0]
+        r = e - X @ coef
+        se = np.sqrt(np.linalg.inv(X.T @ X)[0, 0] * (r @ r) / (n - 2))
+        naive.append(coef[0] - 1.645 * se > 0)
+    # no trend: the ordinary least-squares bound passes ~45 % of the seeds (nominal 5 %)
+    assert np.mean(naive) > 0.3
+    assert np.mean(jk) <= 0.15
+    # a trend of 0.05 mm/min (0.07 mm over the record) under the same swings is seen
+    found = [block_jackknife_coef(_slow_noise(100 + s, n) + 0.05 * t_min, X)["lower"] > 0
+             for s in range(40)]
+    assert np.mean(found) >= 0.9
+
+
+def test_block_jackknife_coefficient_is_least_squares_and_checks_its_input():
+    rng = np.random.default_rng(0)
+    X = np.column_stack([rng.standard_normal(400), np.ones(400)])
+    e = 0.7 * X[:, 0] + 0.1 * rng.standard_normal(400)
+    out = block_jackknife_coef(e, X, blocks=10)
+    assert out["coef"] == pytest.approx(np.linalg.lstsq(X, e, rcond=None)[0][0])
+    assert out["blocks"] == 10 and 0 < out["se"] < 0.05 and out["lower"] > 0.6
+    with pytest.raises(ValueError, match="blocks"):
+        block_jackknife_coef(e[:30], X[:30], blocks=10)
+    with pytest.raises(ValueError, match="blocks"):
+        block_jackknife_coef(e, X, blocks=2)
+    with pytest.raises(ValueError, match="X must be"):
+        block_jackknife_coef(e, X[:-1])
+    bad = e.copy()
+    bad[5] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        block_jackknife_coef(bad, X)
