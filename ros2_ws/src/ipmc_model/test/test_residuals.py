@@ -372,5 +372,7 @@ def test_block_jackknife_coefficient_is_least_squares_and_checks_its_input():
         block_jackknife_coef(e, X[:-1])
     bad = e.copy()
     bad[5] = np.nan
-    with pytest.raises(ValueError, match="finite"):
+    with pytest.raises(ValueError, match="e must be finite"):
         block_jackknife_coef(bad, X)
+    with pytest.raises(ValueError, match="X must be finite"):
+        block_jackknife_coef(e, np.where(bad[:, None] == bad[:, None], X, np.inf))
