@@ -374,5 +374,7 @@ def test_block_jackknife_coefficient_is_least_squares_and_checks_its_input():
     bad[5] = np.nan
     with pytest.raises(ValueError, match="e must be finite"):
         block_jackknife_coef(bad, X)
+    bad_X = X.copy()
+    bad_X[5, 0] = np.inf
     with pytest.raises(ValueError, match="X must be finite"):
-        block_jackknife_coef(e, np.where(bad[:, None] == bad[:, None], X, np.inf))
+        block_jackknife_coef(e, bad_X)
