@@ -34,6 +34,10 @@ def test_creep_is_found_on_step_data(steps_hold):
     # joint fit gave tau 3.6 s, -0.24 mm/V: the hysteresis took the slow part)
     assert 20.0 / 1.5 <= steps_hold["creep_fitted"]["tau_s"] <= 20.0 * 1.5
     assert steps_hold["creep_fitted"]["gain_mm_per_v"] == pytest.approx(-0.12, rel=0.3)
+    # the 95 % intervals over the holds hold the plant's creep, and 300 s bound its tau
+    span = steps_hold["creep_intervals"]
+    assert span["tau_s"][0] <= 20.0 <= span["tau_s"][1] and span["tau_bounded"]
+    assert span["gain_mm_per_v"][0] <= -0.12 <= span["gain_mm_per_v"][1]
     assert steps_hold["identification_rmse_after_mm"] < steps_hold[
         "identification_rmse_before_mm"]
 

@@ -220,8 +220,12 @@ class Demo:
             s_after = ("n/a" if h["settled_rmse_after_mm"] is None
                        else f"{h['settled_rmse_after_mm']:.4f}")
             fitted = h["creep_fitted"]
+            span = h.get("creep_intervals") or {}
+            tau_span = (f" (95 %: {span['tau_s'][0]:.1f}-{span['tau_s'][1]:.1f} s)"
+                        if span else "")
             found = ("no" if fitted is None else
-                     f"tau {fitted['tau_s']:.1f} s, {fitted['gain_mm_per_v']:+.3f} mm/V")
+                     f"tau {fitted['tau_s']:.1f} s{tau_span}, "
+                     f"{fitted['gain_mm_per_v']:+.3f} mm/V")
             o_after = ("n/a" if h["inverse_only_rmse_after_mm"] is None
                        else f"{h['inverse_only_rmse_after_mm']:.4f}")
             self.summary.append(

@@ -213,9 +213,10 @@ def in_data_text(c: Candidate) -> str:
     ev = c.evidence
     if c.effect == "creep":
         hd = ev.get("hold_drift", {})
-        return (f"{ev['describe']}; hold test on {hd.get('holds')} holds, drift "
-                f"{hd.get('beta', float('nan')):.2f} x the predicted, 95 % lower bound "
-                f"{hd.get('lower', float('nan')):.2f}): {CREEP_IN_DATA_TEXT}")
+        ci = creep_interval_text(ev.get("creep_fit", {}))
+        return (f"{ev['describe']}{'; ' + ci if ci else ''}; hold test on {hd.get('holds')} "
+                f"holds, drift {hd.get('beta', float('nan')):.2f} x the predicted, 95 % lower "
+                f"bound {hd.get('lower', float('nan')):.2f}): {CREEP_IN_DATA_TEXT}")
     if c.effect == "saturation":
         # both limits: the block's (refits scored on held-back data) is often the closer but
         # can land far off; the scan's overestimates a soft limit the data reach the knee of
@@ -234,6 +235,20 @@ def in_data_text(c: Candidate) -> str:
                 f"{t['rss_ratio']:.3f}): {DELAY_IN_DATA_TEXT}")
     return (f"{ev['describe']}; refit-free test p = {ev['test']['p_value']:.2g}): "
             f"{IN_DATA_TEXT}")
+
+
+def creep_interval_text(fit: dict) -> str:
+    """The 95 % intervals of a creep fitted on the holds (``fit``: the hold fit or the
+    evidence's ``creep_fit``), and whether the record bounds tau; "" without them."""
+    if "tau_interval_s" not in fit:
+        return ""
+    (tl, th), (gl, gh) = fit["tau_interval_s"], fit["gain_interval_mm_per_v"]
+    text = (f"95 % intervals over a bootstrap of the holds: tau {tl:.3g}-{th:.3g} s, gain "
+            f"{gl:.3g} to {gh:.3g} mm/V")
+    if not fit["tau_bounded"]:
+        text += (" (the interval reaches the end of the tau grid: this record does not bound "
+                 "tau; longer input holds or a longer record would)")
+    return text
 
 
 def undecided_text(c: Candidate) -> str:
@@ -352,6 +367,17 @@ class Diagnosis:
         last = {c.effect: c for c in self.candidates}
         return [c for c in last.values()
                 if c.evidence.get("in_data") and c.effect not in self.effects_found]
+
+    def creep_intervals(self) -> dict:
+        """95 % intervals of the accepted creep fitted on the input holds (bootstrap over the
+        holds, :func:`~ipmc_model.effects.fit_creep_on_holds`): ``{"tau_s": [lo, hi],
+        "gain_mm_per_v": [lo, hi], "tau_bounded": bool}``; empty without one."""
+        for c in self.candidates:
+            cf = c.evidence.get("creep_fit", {})
+            if c.accepted and "tau_interval_s" in cf:
+                return {"tau_s": cf["tau_interval_s"], "gain_mm_per_v":
+                        cf["gain_interval_mm_per_v"], "tau_bounded": cf["tau_bounded"]}
+        return {}
 
     def undecided(self) -> list[Candidate]:
         """Effects that gain on the held-out data but that the record cannot tell from another
@@ -838,7 +864,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                 if "tau_s" in fit:
                     text += (f"; creep fitted on the drift in {fit['holds']} fit-part holds"
                              + (" (tau at the grid's longest: only gain / tau determined)"
-                                if edge else ""))
+                                if edge else "") + f", {creep_interval_text(fit)}")
                 test = dict(test, significant=bool(test["significant"] and hold["significant"]
                                                    and not edge), text=text)
             gain = 1.0 - rm / rmse_cur if np.isfinite(rm) and rmse_cur > 0 else 0.0
@@ -917,7 +943,9 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                 ev["undecided"] = bool(untested_creep and min(gains) >= need and material)
                 ev["creep_fit"] = {"method": "holds" if "tau_s" in fit else "whole residual",
                                    **{k: fit[k] for k in ("holds", "skip_s", "at_edge",
-                                                          "at_short_edge",
+                                                          "at_short_edge", "tau_interval_s",
+                                                          "tau_bounded",
+                                                          "gain_interval_mm_per_v",
                                                           "fast_tau_s", "nuisance_tau_s",
                                                           "nuisance_mm_per_v") if k in fit}}
             paired = ", ".join(f"{100 * g:+.1f}" for g in gains[1:])
@@ -1040,10 +1068,16 @@ def _markdown(d: Diagnosis, s: dict, figs: list[str], label: str) -> str:
     lines += [f"Note: {n}." for n in d.notes] + ([""] if d.notes else [])
     if d.model_after.effects:
         lines += ["## Fitted effects (physical units)", "", "| effect | parameter | value | "
-                  "unit |", "|---|---|---|---|"]
+                  "95 % interval | unit |", "|---|---|---|---|---|"]
+        spans = d.creep_intervals()
         for e in d.model_after.effects:
             for k, v in e.params.items():
-                lines.append(f"| {e.name} | {k} | {v:.4g} | {PARAM_UNITS[k]} |")
+                lo_hi = spans.get(k) if e.name == "creep" else None
+                span = f"{lo_hi[0]:.4g} to {lo_hi[1]:.4g}" if lo_hi else ""
+                lines.append(f"| {e.name} | {k} | {v:.4g} | {span} | {PARAM_UNITS[k]} |")
+        if spans:
+            lines += ["", "95 % interval: bootstrap over the input holds the creep was fitted "
+                      "on (tau widened by one grid step each way)."]
         lines.append("")
     lines += ["## Candidates", "", "| round | effect | held-out free-run RMSE (mm) | accepted "
               "| evidence |", "|---|---|---|---|---|"]
@@ -1207,7 +1241,8 @@ def creep_hold_experiment(*, identify_s: float = 120.0, duration_s: float | None
         inverse; None if no creep was found), ``settled_rmse_before_mm`` /
         ``settled_rmse_after_mm`` (t >= 2 s), the same four with the inverse alone (open loop,
         ``inverse_only_*``), ``paper_rmse_mm`` (0.8756), ``effects_found``,
-        ``creep_fitted`` (params), the identification's held-out free-run RMSE before/after,
+        ``creep_fitted`` (params), ``creep_intervals`` (:meth:`Diagnosis.creep_intervals`),
+        the identification's held-out free-run RMSE before/after,
         ``results`` (the two ``TrackResult``) and ``diagnosis``.
     """
     from ipmc_control.experiment import DEFAULT_DURATION_S, paper_reference, run_tracking
@@ -1251,6 +1286,7 @@ def creep_hold_experiment(*, identify_s: float = 120.0, duration_s: float | None
            "rmse_before_mm": res_before.summary()["rmse_mm"], "rmse_after_mm": None,
            "settled_rmse_before_mm": _settled_rmse(res_before), "settled_rmse_after_mm": None,
            "creep_fitted": next((e.params for e in after.effects if e.name == "creep"), None),
+           "creep_intervals": d.creep_intervals(),
            "identification_rmse_before_mm": d.rmse_before_mm,
            "identification_rmse_after_mm": d.rmse_after_mm, "duration_s": dur,
            "inverse_only_rmse_before_mm": open_before.summary()["rmse_mm"],

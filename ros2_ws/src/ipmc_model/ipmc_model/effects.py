@@ -734,6 +734,8 @@ CREEP_FAST_TAUS_S = (0.3, 0.5, 0.8)
 CREEP_HOLD_MIN_HOLDS = 3
 #: Points of the creep tau grid of the hold fit (log spaced, :func:`creep_taus`).
 CREEP_HOLD_TAU_POINTS = 40
+#: Bootstrap resamples of the holds for the 95 % intervals of the creep's tau and gain.
+CREEP_HOLD_BOOTSTRAP = 400
 
 
 #: The current model counts as settled in a hold once its prediction stays within this share
@@ -786,7 +788,8 @@ def fit_creep_on_holds(r, u, dt_s: float, taus, *, nuisance_tau_s: float | None 
                        skip_s: float = CREEP_HOLD_SKIP_S,
                        min_use_s: float = CREEP_HOLD_MIN_USE_S,
                        fast_taus_s=CREEP_FAST_TAUS_S,
-                       min_holds: int = CREEP_HOLD_MIN_HOLDS) -> dict:
+                       min_holds: int = CREEP_HOLD_MIN_HOLDS,
+                       n_boot: int = CREEP_HOLD_BOOTSTRAP, boot_seed: int = 0) -> dict:
     """Creep tau and gain from the drift of a residual during input holds.
 
     During a hold of the input (:func:`~ipmc_model.residuals.find_holds`) a baseline with a
@@ -824,7 +827,11 @@ def fit_creep_on_holds(r, u, dt_s: float, taus, *, nuisance_tau_s: float | None 
         ``gain_mm_per_v``, ``at_edge`` (tau is the grid's longest: only g / tau is determined,
         the hold drift looks like a ramp), ``at_short_edge`` (tau is the grid's shortest: the
         drift is not told from the plant's own settling), ``fast_tau_s``, ``nuisance_tau_s``,
-        ``nuisance_mm_per_v`` (its gain),
+        ``nuisance_mm_per_v`` (its gain), ``tau_interval_s`` and ``gain_interval_mm_per_v``
+        (95 % intervals from ``n_boot`` bootstrap resamples of the holds, seeded by
+        ``boot_seed``; tau's widened by one grid step each way, the gain's to the fitted gains
+        over tau's interval), ``tau_bounded`` (the tau
+        interval reaches neither end of the grid: the record bounds tau),
         ``segments`` (list of (start, stop) samples), ``oof_state``, an (N,) array: in each
         used hold the creep state (mm) predicted by the fit on the *other* holds (leave one hold
         out; NaN elsewhere), for out-of-sample evidence, and ``profile`` (rows tau_s, gain,
@@ -871,10 +878,12 @@ def fit_creep_on_holds(r, u, dt_s: float, taus, *, nuisance_tau_s: float | None 
                 snn[i, f], snr[i, f], snx[i, f] = nn @ nn, nn @ rr, X.T @ nn
     snn_raw = 0.0 if nuis is None else sum(float(nuis[i] @ nuis[i]) for i in idxs)
 
-    def solve(keep):
-        """Gains (creep g, nuisance h) and SSE for every (tau_f, tau) from the holds kept."""
-        a, b, c = sxx[keep].sum(0), sxr[keep].sum(0), snx[keep].sum(0)
-        d, e, rr = snn[keep].sum(0)[:, None], snr[keep].sum(0)[:, None], srr[keep].sum(0)
+    def solve(w):
+        """Gains (creep g, nuisance h) and SSE for every (tau_f, tau) from the holds weighted
+        by ``w`` (G,): 0/1 to leave holds out, counts for a bootstrap resample."""
+        a, b, c = (np.tensordot(w, x, axes=1) for x in (sxx, sxr, snx))
+        d, e, rr = (np.tensordot(w, x, axes=1) for x in (snn, snr, srr))
+        d, e = d[:, None], e[:, None]
         if nuis is None:
             g = np.where(a > 0, b / np.where(a > 0, a, 1.0), 0.0)
             h = np.zeros_like(g)
@@ -889,17 +898,34 @@ def fit_creep_on_holds(r, u, dt_s: float, taus, *, nuisance_tau_s: float | None 
         f, t = np.unravel_index(int(np.argmin(sse)), sse.shape)
         return f, t, g, h, sse
 
-    f, t, g, h, sse = solve(np.ones(G, bool))
+    f, t, g, h, sse = solve(np.ones(G))
     oof = np.full(u.size, np.nan)
     for i, (s, e) in enumerate(segs):
-        keep = np.ones(G, bool)
-        keep[i] = False
+        keep = np.ones(G)
+        keep[i] = 0.0
         fi, ti, gi, _, _ = solve(keep)
         oof[s:e] = gi[fi, ti] * bases[ti][s:e]
+    # Holds resampled whole (a cluster bootstrap): samples within a hold are correlated, and
+    # holds are what the record has few of. Each tau end moves out by one grid step: tau is
+    # resolved to the grid, and every resample can land on one point.
+    rng = np.random.default_rng(boot_seed)
+    boot_t, boot_g = np.empty(int(n_boot), int), np.empty(int(n_boot))
+    for j in range(int(n_boot)):
+        fb, tb, gb, _, _ = solve(np.bincount(rng.integers(0, G, G), minlength=G).astype(float))
+        boot_t[j], boot_g[j] = tb, gb[fb, tb]
+    t_lo, t_hi = np.percentile(boot_t, [2.5, 97.5], method="inverted_cdf").astype(int)
+    t_lo, t_hi = max(t_lo - 1, 0), min(t_hi + 1, T - 1)
+    # the gain trades with tau: its interval also spans the fit's gains over tau's interval
+    g_lo, g_hi = np.percentile(boot_g, [2.5, 97.5])
+    g_prof = g[f, t_lo:t_hi + 1]
     out.update(tau_s=float(taus[t]), gain_mm_per_v=float(g[f, t]), at_edge=bool(t == T - 1),
                at_short_edge=bool(t == 0), fast_tau_s=float(fast_taus_s[f]),
                nuisance_tau_s=None if nuis is None else float(nuisance_tau_s),
                nuisance_mm_per_v=float(h[f, t]), segments=segs, oof_state=oof,
+               tau_interval_s=[float(taus[t_lo]), float(taus[t_hi])],
+               tau_bounded=bool(0 < t_lo and t_hi < T - 1),
+               gain_interval_mm_per_v=[float(min(g_lo, g_prof.min())),
+                                       float(max(g_hi, g_prof.max()))],
                profile=np.column_stack([taus, g[f], sse[f]]))
     return out
 

@@ -91,7 +91,7 @@ def test_no_creep_on_clean_plant_with_holds():
     # input, 8.9 % gain; with holds and 120 s it gains 62 %)
     (4, {"tau_s": 8.0, "gain_mm_per_v": -0.4}),
 ])
-def test_creep_found_with_undeclared_parameters(seed, creep):
+def test_creep_found_with_undeclared_parameters(seed, creep, tmp_path):
     # creep needs input holds to show in time (the hold-drift evidence), and 120 s: on 90 s of
     # this input the seed-1 creep fit lands at tau 28 s, -2.7 mm/V and loses on held-out data
     t, u, y = _plant({"creep": creep}, seed=seed, seconds=120.0, holds=True)
@@ -108,6 +108,17 @@ def test_creep_found_with_undeclared_parameters(seed, creep):
     fitted = accepted.evidence["params"]
     assert creep["tau_s"] / 1.5 <= fitted["tau_s"] <= 1.5 * creep["tau_s"]
     assert fitted["gain_mm_per_v"] == pytest.approx(creep["gain_mm_per_v"], rel=0.35)
+    # the 95 % intervals (bootstrap over the holds) hold the plant's creep, and the report
+    # gives them beside the fitted values
+    cf = accepted.evidence["creep_fit"]
+    (lo, hi), (g_lo, g_hi) = cf["tau_interval_s"], cf["gain_interval_mm_per_v"]
+    assert lo <= creep["tau_s"] <= hi and g_lo <= creep["gain_mm_per_v"] <= g_hi
+    assert cf["tau_bounded"] and "95 % intervals over a bootstrap" in accepted.evidence["text"]
+    from ipmc_model.diagnose import write_report
+
+    write_report(d, tmp_path)
+    assert f"| creep | tau_s | {fitted['tau_s']:.4g} | {lo:.4g} to {hi:.4g} | s |" in (
+        tmp_path / "report.md").read_text()
 
 
 def test_no_creep_on_clean_step_record():
@@ -146,6 +157,8 @@ def test_forward_creep_is_named_in_the_data_not_accepted(seed, tmp_path):
     assert p["gain_mm_per_v"] == pytest.approx(creep["gain_mm_per_v"], rel=0.35)
     assert named[0].evidence["improvement"] < named[0].evidence["threshold"]
     assert "keeps drifting during input holds" in in_data_text(named[0])
+    lo, hi = named[0].evidence["creep_fit"]["tau_interval_s"]
+    assert lo <= creep["tau_s"] <= hi and "95 % intervals" in in_data_text(named[0])
     write_report(d, tmp_path)
     assert "In the data, not added: **creep**" in (tmp_path / "report.md").read_text()
     # the clean plant on the same input: no creep in the data
