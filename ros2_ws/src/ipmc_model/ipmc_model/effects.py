@@ -830,8 +830,8 @@ def fit_creep_on_holds(r, u, dt_s: float, taus, *, nuisance_tau_s: float | None 
         ``nuisance_mm_per_v`` (its gain), ``tau_interval_s`` and ``gain_interval_mm_per_v``
         (95 % intervals from ``n_boot`` bootstrap resamples of the holds, seeded by
         ``boot_seed``; tau's widened by one grid step each way, the gain's to the fitted gains
-        over tau's interval), ``tau_bounded`` (the tau
-        interval reaches neither end of the grid: the record bounds tau),
+        over tau's interval), ``tau_bounded`` (the tau interval reaches neither end of the
+        grid: the record bounds tau),
         ``segments`` (list of (start, stop) samples), ``oof_state``, an (N,) array: in each
         used hold the creep state (mm) predicted by the fit on the *other* holds (leave one hold
         out; NaN elsewhere), for out-of-sample evidence, and ``profile`` (rows tau_s, gain,
