@@ -843,6 +843,8 @@ def fit_creep_on_holds(r, u, dt_s: float, taus, *, nuisance_tau_s: float | None 
     u = as_signal("u", u)
     same_length(r=r, u=u)
     taus = np.asarray(taus, dtype=float)
+    if int(n_boot) < 1:
+        raise ValueError(f"n_boot must be at least 1 (bootstrap resamples), got {n_boot}")
     skip = int(round(skip_s / dt_s))
     segs, idxs = [], []
     for s, e in find_holds(u, dt_s, skip_s + min_use_s):

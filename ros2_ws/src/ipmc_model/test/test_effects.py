@@ -349,6 +349,9 @@ def test_creep_hold_intervals_cover_the_truth_and_widen_with_the_noise():
     lo, hi = exact["tau_interval_s"]
     assert lo < exact["tau_s"] < hi and exact["tau_bounded"]
     assert fit(20, 0.0)["gain_interval_mm_per_v"] == exact["gain_interval_mm_per_v"]  # seeded
+    u, r = _hold_residual(20)
+    with pytest.raises(ValueError, match="n_boot must be at least 1"):
+        fit_creep_on_holds(r, u, dt, taus, n_boot=0)
 
 
 def _plant_creep_fit(seed: int, tau_s: float, gain: float):
