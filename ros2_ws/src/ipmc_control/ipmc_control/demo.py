@@ -220,7 +220,7 @@ class Demo:
             s_after = ("n/a" if h["settled_rmse_after_mm"] is None
                        else f"{h['settled_rmse_after_mm']:.4f}")
             fitted = h["creep_fitted"]
-            span = h.get("creep_intervals") or {}
+            span = h["creep_intervals"]
             tau_span = (f" (95 %: {span['tau_s'][0]:.1f}-{span['tau_s'][1]:.1f} s)"
                         if span else "")
             found = ("no" if fitted is None else
