@@ -1,10 +1,14 @@
 """Benchmark of ``ipmc diagnose``: wall time on 30 000 samples, the plant's effects, and the
 third-party data (Bouc-Wen, piezo). Prints figures; not part of the pass/fail suite.
 
-    .venv/bin/python benchmarks/bench_diagnose.py [timing|effects [LABEL_PREFIX...]|thirdparty|all]
+    .venv/bin/python benchmarks/bench_diagnose.py [timing|thirdparty|all]
+    .venv/bin/python benchmarks/bench_diagnose.py effects [SEED...] [LABEL_PREFIX...]
     .venv/bin/python benchmarks/bench_diagnose.py creepfit [SEED...]
     .venv/bin/python benchmarks/bench_diagnose.py slowcreep [SEED...]
     .venv/bin/python benchmarks/bench_diagnose.py stale [SEED...] [LABEL_PREFIX...]
+
+``effects``: every case of :data:`CASES` through the CLI, without ``--model`` (seeds 0, 1, 2
+by default; they were used to design it).
 
 ``stale``: a model fitted on a clean day (the diagnosis's own baseline on 120 s of the mixed
 3 V input) given with ``--model`` to the record of a later day (seed + 100) on which the plant
@@ -246,7 +250,9 @@ if __name__ == "__main__":
         if what in ("timing", "all"):
             timing(tmp)
         if what in ("effects", "all"):
-            effects(tmp, only=tuple(sys.argv[2:]) or None)
+            args = sys.argv[2:] if what == "effects" else []
+            effects(tmp, tuple(int(a) for a in args if a.isdigit()) or (0, 1, 2),
+                    only=tuple(a for a in args if not a.isdigit()) or None)
         if what in ("thirdparty", "all"):
             thirdparty(tmp)
         if what == "stale":
