@@ -21,6 +21,10 @@ saturation     output   y = limit_mm tanh(z / limit_mm)
 delay          input    v_k = u_{k - d}, d = delay_s / dt (transport delay)
 dead_zone      input    v = sign(u) max(|u| - width_v, 0)
 asymmetry      input    v = u for u >= 0, negative_gain_ratio u for u < 0
+asymmetry      output   (with negative_bending_ratio: the block around a given model) y = z for
+                        z >= 0, negative_bending_ratio z for z < 0: the negative bending scaled
+                        (one electrode face cracked), as the plant has it; on the voltage the
+                        charging dynamics between them bias the ratio toward 1
 rate_dependence input   an extra input channel, the voltage rate du/dt (V/s) low-passed with
                         tau_s, one lag: the bending depends on how fast the voltage changes
 rate_dependence output  (with gain_mm_per_v_per_s: the block around a given model) y = z + g rho,
@@ -58,9 +62,10 @@ fitted in the baseline's space (:meth:`AugmentedModel.fit_inverse`). For creep, 
 the creep state c_k (known from the voltages already applied) is subtracted from the desired
 displacement, the baseline inverse gives the voltage for the rest, and the applied voltage
 then advances the creep state. Drift and saturation are inverted the same way, dead zone and
-asymmetry by their inverse static maps, the output form of rate dependence like creep (its
-state is known from the voltages already applied); delay and the rate and memory channels are
-not invertible step by step (a delay needs reference preview) and raise ``ValueError``.
+asymmetry (either form) by their inverse static maps, the output form of rate dependence like
+creep (its state is known from the voltages already applied); delay and the rate and memory
+channels are not invertible step by step (a delay needs reference preview) and raise
+``ValueError``.
 """
 
 from __future__ import annotations
@@ -101,7 +106,8 @@ FROZEN_GRID_POINTS = 25
 PARAM_UNITS = {
     "tau_s": "s", "gain_mm_per_v": "mm/V", "gain_loss_per_min": "1/min",
     "offset_mm_per_min": "mm/min", "delay_s": "s", "width_v": "V",
-    "negative_gain_ratio": "1", "limit_mm": "mm", "gain_mm_per_v_per_s": "mm/(V/s)",
+    "negative_gain_ratio": "1", "negative_bending_ratio": "1", "limit_mm": "mm",
+    "gain_mm_per_v_per_s": "mm/(V/s)",
 }
 
 AUGMENTED_FORMAT = "ipmc-ros-augmented-model"
@@ -130,8 +136,9 @@ class Effect:
         "rate_dependence": ("tau_s",),
         "memory": ("tau_s",),
     }
-    # a second parameter set: rate dependence as an output block around a given model
-    _OUTPUT_KEYS = {"rate_dependence": ("tau_s", "gain_mm_per_v_per_s")}
+    # a second parameter set: the output form of a block, fitted around a given model
+    _OUTPUT_KEYS = {"rate_dependence": ("tau_s", "gain_mm_per_v_per_s"),
+                    "asymmetry": ("negative_bending_ratio",)}
 
     def __init__(self, name: str, **params):
         if name not in EFFECT_NAMES + BASELINE_BLOCKS:
@@ -153,20 +160,27 @@ class Effect:
             raise ValueError(f"effect {name!r}: tau_s must be > 0, got {self.params['tau_s']}")
         if name == "saturation" and self.params["limit_mm"] <= 0:
             raise ValueError(f"saturation: limit_mm must be > 0, got {self.params['limit_mm']}")
-        if name == "asymmetry" and self.params["negative_gain_ratio"] <= 0:
-            raise ValueError("asymmetry: negative_gain_ratio must be > 0")
+        if name == "asymmetry" and list(self.params.values())[0] <= 0:
+            raise ValueError(f"asymmetry: {keys[0]} must be > 0")
         if name in ("delay", "dead_zone") and list(self.params.values())[0] < 0:
             raise ValueError(f"effect {name!r}: parameter must be >= 0, got {self.params}")
 
     @property
     def side(self) -> str:
         """``"input"`` or ``"output"``."""
-        return "output" if self.name in OUTPUT_EFFECTS or self.is_rate_output else "input"
+        return "output" if self.name in OUTPUT_EFFECTS or self.is_output_form else "input"
+
+    @property
+    def is_output_form(self) -> bool:
+        """The output form of a block that also has an input form (its second parameter set:
+        rate dependence with ``gain_mm_per_v_per_s``, asymmetry with
+        ``negative_bending_ratio``)."""
+        return tuple(self.params) == self._OUTPUT_KEYS.get(self.name)
 
     @property
     def is_rate_output(self) -> bool:
         """Rate dependence as an output block (``gain_mm_per_v_per_s`` given), not a channel."""
-        return "gain_mm_per_v_per_s" in self.params
+        return self.name == "rate_dependence" and self.is_output_form
 
     @property
     def is_channel(self) -> bool:
@@ -223,6 +237,8 @@ class Effect:
             return z + self.creep_state(u, dt_s)
         if self.name == "rate_dependence":
             return z + self.rate_state(u, dt_s)
+        if self.name == "asymmetry":
+            return np.where(z >= 0.0, z, p["negative_bending_ratio"] * z)
         if self.name == "drift":
             m = t_s / 60.0
             return (1.0 - p["gain_loss_per_min"] * m) * z + p["offset_mm_per_min"] * m
@@ -236,6 +252,8 @@ class Effect:
             return y - self.creep_state(u, dt_s)
         if self.name == "rate_dependence":
             return y - self.rate_state(u, dt_s)
+        if self.name == "asymmetry":
+            return np.where(y >= 0.0, y, y / p["negative_bending_ratio"])
         if self.name == "drift":
             m = t_s / 60.0
             g = np.maximum(1.0 - p["gain_loss_per_min"] * m, 0.05)
@@ -304,6 +322,8 @@ class _Runner:
             return z_k + self.c
         if self.e.name == "rate_dependence":
             return z_k + p["gain_mm_per_v_per_s"] * self.rho
+        if self.e.name == "asymmetry":
+            return z_k if z_k >= 0 else p["negative_bending_ratio"] * z_k
         if self.e.name == "drift":
             m = t_k / 60.0
             return (1.0 - p["gain_loss_per_min"] * m) * z_k + p["offset_mm_per_min"] * m
@@ -315,6 +335,8 @@ class _Runner:
             return y_k - self.c
         if self.e.name == "rate_dependence":
             return y_k - p["gain_mm_per_v_per_s"] * self.rho
+        if self.e.name == "asymmetry":
+            return y_k if y_k >= 0 else y_k / p["negative_bending_ratio"]
         if self.e.name == "drift":
             m = t_k / 60.0
             g = max(1.0 - p["gain_loss_per_min"] * m, 0.05)
@@ -1338,10 +1360,14 @@ def fit_frozen_effect(name: str, model: AugmentedModel, u, y) -> tuple[Augmented
     (u, y) (the fit part only) over a grid of :data:`FROZEN_GRID_POINTS` values, refined
     between the best value's neighbours (bounded Brent; not for the delay, in samples; below
     the first dead-zone width the neighbour is 0). A dead zone narrower than half the first
-    width is refused: no grid value beats the model as given. Rate dependence is the output
-    block ``z + g rho`` (the low-passed voltage rate): for each tau (log grid from 0.02 s to a
-    third of the model's lag window, then Brent) g by least squares on the free-run residual,
-    the model's output and a constant as nuisance terms.
+    width is refused: no grid value beats the model as given. Asymmetry is fitted in both its
+    forms, the negative voltage scaled (``negative_gain_ratio``) and the negative bending
+    scaled (``negative_bending_ratio``), and the form with the lower RMSE is kept: with a
+    well-fitted model the bending form gives the plant's ratio, with a poor one the voltage
+    form can absorb some of the model's error (docs/diagnose.md, session 27). Rate dependence
+    is the output block ``z + g rho`` (the low-passed voltage rate): for each tau (log grid
+    from 0.02 s to a third of the model's lag window, then Brent) g by least squares on the
+    free-run residual, the model's output and a constant as nuisance terms.
 
     Returns
     -------
@@ -1370,30 +1396,36 @@ def fit_frozen_effect(name: str, model: AugmentedModel, u, y) -> tuple[Augmented
         return out, eff
     if name == "rate_dependence":
         return _fit_frozen_rate(model, u, y, z, rmse_model)
-    key = Effect._KEYS[name][0]
-
-    def score(value: float) -> float:
-        m = AugmentedModel(model.baseline, model.effects + [Effect(name, **{key: value})],
-                           model.dt_s)
-        with np.errstate(all="ignore"):
-            return _free_run_rmse(m, u, y)
-
+    # asymmetry has two physical forms, the negative voltage or the negative bending scaled;
+    # the one that fits the fit part better is kept (docs/diagnose.md, session 27)
+    keys = ((Effect._KEYS[name][0], Effect._OUTPUT_KEYS[name][0]) if name == "asymmetry"
+            else (Effect._KEYS[name][0],))
     grid = _frozen_grid(name, u, y, model.dt_s)
-    scores = [score(v) for v in grid]
-    i = int(np.argmin(scores))
-    best, best_score = float(grid[i]), float(scores[i])
+    fits = []
+    for key in keys:
+        def score(value: float, key=key) -> float:
+            m = AugmentedModel(model.baseline, model.effects + [Effect(name, **{key: value})],
+                               model.dt_s)
+            with np.errstate(all="ignore"):
+                return _free_run_rmse(m, u, y)
+
+        scores = [score(v) for v in grid]
+        i = int(np.argmin(scores))
+        best, best_score = float(grid[i]), float(scores[i])
+        if best_score < rmse_model and name != "delay" and len(grid) > 2:
+            lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+            if name == "dead_zone" and i == 0:  # below the first width lies 0, not the grid's end
+                lo = 0.0
+            res = minimize_scalar(score, bounds=(lo, hi), method="bounded",
+                                  options={"xatol": 1e-3 * (hi - lo)})
+            if res.success and res.fun < best_score:
+                best, best_score = float(res.x), float(res.fun)
+        fits.append((best_score, key, best))
+    best_score, key, best = min(fits)
     if not best_score < rmse_model:
         raise ValueError(f"no {name}: the model as given fits the fit part best without it "
                          f"(free-run RMSE {rmse_model:.4g} mm; best {name} "
                          f"{best:.4g} {PARAM_UNITS[key]}: {best_score:.4g} mm)")
-    if name != "delay" and len(grid) > 2:
-        lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
-        if name == "dead_zone" and i == 0:  # below the first width lies 0, not the grid's end
-            lo = 0.0
-        res = minimize_scalar(score, bounds=(lo, hi), method="bounded",
-                              options={"xatol": 1e-3 * (hi - lo)})
-        if res.success and res.fun < best_score:
-            best, best_score = float(res.x), float(res.fun)
     eff = Effect(name, **{key: best})
     eff.frozen_ = {"fit_rmse_mm": best_score, "fit_rmse_before_mm": rmse_model}
     return AugmentedModel(model.baseline, model.effects + [eff], model.dt_s), eff

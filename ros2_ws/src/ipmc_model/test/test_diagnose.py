@@ -291,8 +291,10 @@ def day1_model():
 # cycles, -0.14 /min on the clean record, so a 0.15 /min drift is not told from it.)
 # Asymmetry and rate dependence (session 13): designed on seeds 0, 1 (+100) with 0.7 / 0.8 and
 # 0.1 / 0.05 mm/(V/s); the sizes here were used for neither. The plant's asymmetry scales its
-# negative *bending*, the block the negative *voltage*: through the plant's stiffening bend a
-# bending ratio of 0.75 is a voltage ratio between 0.75 and sqrt(0.75) = 0.87, inside the 25 %.
+# negative *bending*. The block around a given model has both forms and keeps the one that fits
+# better (session 27): the bending form gives the plant's ratio, the voltage form a ratio
+# nearer 1 (through the plant's stiffening bend 0.75 becomes 0.75..sqrt(0.75) = 0.87). This
+# fast day-1 model fits better with the voltage form (0.855), so both are allowed here.
 @pytest.mark.parametrize("effect, params", [
     ("dead_zone", {"width_v": 0.4}),
     ("saturation", {"limit_mm": 2.0}),
@@ -310,9 +312,13 @@ def test_given_model_from_a_clean_day_names_what_changed(day1_model, effect, par
     assert d.effects_found[:1] == [effect]
     assert d.model_after.baseline is day1_model.baseline  # the block around it, not a refit
     fitted = d.model_after.effects[0].params
+    rel = 0.25
+    if effect == "asymmetry" and "negative_bending_ratio" in fitted:
+        params, rel = {"negative_bending_ratio": params["negative_gain_ratio"]}, 0.1
     # the rate block's tau lands at its cap (0.4 s, a third of the model's window; the plant
     # charges in 0.3 s behind a slew limit), where gain and tau trade: measured 0.099 for 0.08
-    rel = 0.35 if effect == "rate_dependence" else 0.25
+    if effect == "rate_dependence":
+        rel = 0.35
     for k, v in params.items():
         assert fitted[k] == pytest.approx(v, rel=rel)
     # 0.6: dead zone and saturation take most of the error; asymmetry and rate dependence

@@ -74,6 +74,7 @@ def test_creep_state_is_first_order_step_response():
     ("drift", {"gain_loss_per_min": 0.05, "offset_mm_per_min": 0.1}),
     ("saturation", {"limit_mm": 4.0}),
     ("rate_dependence", {"tau_s": 0.3, "gain_mm_per_v_per_s": 0.1}),
+    ("asymmetry", {"negative_bending_ratio": 0.7}),
 ])
 def test_output_effect_backward_inverts_forward(name, params):
     e = Effect(name, **params)
@@ -119,6 +120,37 @@ def test_rate_output_block_is_the_low_passed_voltage_rate_one_sample_late():
     assert g[61] == pytest.approx(0.2 * (1 - a ** 50), rel=1e-9)  # 50 ramp steps: towards g du/dt
     assert abs(g[-1]) < 1e-6  # held: no current, no bending
     assert np.sum(g) * dt == pytest.approx(0.1 * 2.0, rel=1e-6)  # integral: g times the step
+
+
+def test_asymmetry_output_form_scales_the_negative_bending(base, tmp_path):
+    """Around a given model asymmetry is the output block: the negative bending scaled, as a
+    cracked electrode face scales it (the plant's form), not the negative voltage."""
+    e = Effect("asymmetry", negative_bending_ratio=0.7)
+    assert e.side == "output" and e.is_output_form and not e.is_channel
+    assert Effect("asymmetry", negative_gain_ratio=0.7).side == "input"  # the refit form
+    assert "negative_bending_ratio = 0.7 1" in e.describe()
+    with pytest.raises(ValueError, match="negative_bending_ratio must be > 0"):
+        Effect("asymmetry", negative_bending_ratio=0.0)
+    z = np.array([-2.0, -0.5, 0.0, 0.5, 2.0])
+    assert_allclose(e.forward(z, z, z, 0.02), [-1.4, -0.35, 0.0, 0.5, 2.0])
+    m = AugmentedModel(base.baseline, [e], base.dt_s)
+    u = random_sine(10, RATE, 2.0, (0.1, 1.0), 4, seed=5)[1]
+    zb = base.baseline.simulate(u)
+    assert_allclose(m.simulate(u), np.where(zb >= 0, zb, 0.7 * zb), atol=1e-12)
+    st, bs = m.stepper(), base.baseline.stepper()
+    zs = np.array([bs.step(x) for x in u])
+    assert_allclose([st.step(x) for x in u], np.where(zs >= 0, zs, 0.7 * zs), atol=1e-9)
+    # the feedforward divides a negative reference by the ratio before the baseline inverse
+    inv = m.inverse_stepper(_IdentityInverse())
+    ref = np.r_[np.linspace(0, 1.0, 20), np.linspace(1.0, -1.4, 40)]
+    u_ff = np.array([inv.step(r) for r in ref])
+    assert_allclose(np.where(u_ff >= 0, u_ff, 0.7 * u_ff), ref, atol=1e-12)
+    assert u_ff[-1] == pytest.approx(-2.0)
+    # a model file keeps the form; an old file's voltage form still loads as it was
+    m2 = load_augmented(save_augmented(m, tmp_path / "asym.json"))
+    assert m2.effects[0].params == {"negative_bending_ratio": 0.7}
+    assert m2.effects[0].side == "output"
+    assert_allclose(m2.simulate(u), m.simulate(u), atol=1e-12)
 
 
 def test_stepper_matches_batch_simulation(base):
@@ -454,18 +486,20 @@ def test_every_candidate_fits(record, base):
 
 @pytest.mark.parametrize("name, params", [
     ("dead_zone", {"width_v": 0.35}), ("saturation", {"limit_mm": 1.2}),
-    ("asymmetry", {"negative_gain_ratio": 0.7}), ("delay", {"delay_s": 0.1}),
+    ("asymmetry", {"negative_bending_ratio": 0.7}), ("asymmetry", {"negative_gain_ratio": 0.7}),
+    ("delay", {"delay_s": 0.1}),
     ("drift", {"gain_loss_per_min": 0.2, "offset_mm_per_min": -0.3}),
     ("rate_dependence", {"tau_s": 0.25, "gain_mm_per_v_per_s": 0.08}),
 ])
 def test_frozen_fit_recovers_the_block_around_a_fixed_model(record, base, name, params):
     # data = the fixed model seen through the block (+ laser-like noise): the fit must find
-    # the block and leave the model's baseline untouched
+    # the block and leave the model's baseline untouched (asymmetry: in the form it has)
     u, _ = record
     truth = AugmentedModel(base.baseline, [Effect(name, **params)], base.dt_s)
     y = truth.simulate(u) + 0.005 * np.random.default_rng(0).standard_normal(u.size)
     m, eff = fit_frozen_effect(name, base, u, y)
     assert m.baseline is base.baseline and m.effect_names == [name]
+    assert set(eff.params) == set(params)
     for k, v in params.items():
         assert eff.params[k] == pytest.approx(v, rel=0.05)
     assert eff.frozen_["fit_rmse_mm"] < 0.02 < eff.frozen_["fit_rmse_before_mm"]
