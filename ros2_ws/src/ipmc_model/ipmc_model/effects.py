@@ -21,10 +21,10 @@ saturation     output   y = limit_mm tanh(z / limit_mm)
 delay          input    v_k = u_{k - d}, d = delay_s / dt (transport delay)
 dead_zone      input    v = sign(u) max(|u| - width_v, 0)
 asymmetry      input    v = u for u >= 0, negative_gain_ratio u for u < 0
-asymmetry      output   (with negative_bending_ratio: the block around a given model) y = z for
-                        z >= 0, negative_bending_ratio z for z < 0: the negative bending scaled
-                        (one electrode face cracked), as the plant has it; on the voltage the
-                        charging dynamics between them bias the ratio toward 1
+asymmetry      output   (with negative_bending_ratio: fitted around a given model beside the
+                        input form, the better kept) y = z for z >= 0, negative_bending_ratio z
+                        for z < 0: the negative bending scaled (one electrode face cracked), as
+                        the plant has it
 rate_dependence input   an extra input channel, the voltage rate du/dt (V/s) low-passed with
                         tau_s, one lag: the bending depends on how fast the voltage changes
 rate_dependence output  (with gain_mm_per_v_per_s: the block around a given model) y = z + g rho,

@@ -123,8 +123,8 @@ def test_rate_output_block_is_the_low_passed_voltage_rate_one_sample_late():
 
 
 def test_asymmetry_output_form_scales_the_negative_bending(base, tmp_path):
-    """Around a given model asymmetry is the output block: the negative bending scaled, as a
-    cracked electrode face scales it (the plant's form), not the negative voltage."""
+    """Asymmetry's output form, one of the two fitted around a given model: the negative
+    bending scaled, as a cracked electrode face scales it (the plant's form)."""
     e = Effect("asymmetry", negative_bending_ratio=0.7)
     assert e.side == "output" and e.is_output_form and not e.is_channel
     assert Effect("asymmetry", negative_gain_ratio=0.7).side == "input"  # the refit form
@@ -146,7 +146,7 @@ def test_asymmetry_output_form_scales_the_negative_bending(base, tmp_path):
     u_ff = np.array([inv.step(r) for r in ref])
     assert_allclose(np.where(u_ff >= 0, u_ff, 0.7 * u_ff), ref, atol=1e-12)
     assert u_ff[-1] == pytest.approx(-2.0)
-    # a model file keeps the form; an old file's voltage form still loads as it was
+    # a model file keeps the form (the voltage form's round trip: test_save_load_round_trip)
     m2 = load_augmented(save_augmented(m, tmp_path / "asym.json"))
     assert m2.effects[0].params == {"negative_bending_ratio": 0.7}
     assert m2.effects[0].side == "output"
