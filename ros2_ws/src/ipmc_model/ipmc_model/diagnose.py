@@ -78,6 +78,7 @@ from ipmc_driver.validation import as_signal, same_length
 from .effects import (
     EFFECT_NAMES,
     FROZEN_EFFECTS,
+    PARAM_MEANING,
     PARAM_UNITS,
     REFIT_EFFECTS,
     AugmentedModel,
@@ -1068,13 +1069,14 @@ def _markdown(d: Diagnosis, s: dict, figs: list[str], label: str) -> str:
     lines += [f"Note: {n}." for n in d.notes] + ([""] if d.notes else [])
     if d.model_after.effects:
         lines += ["## Fitted effects (physical units)", "", "| effect | parameter | value | "
-                  "95 % interval | unit |", "|---|---|---|---|---|"]
+                  "95 % interval | unit | meaning |", "|---|---|---|---|---|---|"]
         spans = d.creep_intervals()
         for e in d.model_after.effects:
             for k, v in e.params.items():
                 lo_hi = spans.get(k) if e.name == "creep" else None
                 span = f"{lo_hi[0]:.4g} to {lo_hi[1]:.4g}" if lo_hi else ""
-                lines.append(f"| {e.name} | {k} | {v:.4g} | {span} | {PARAM_UNITS[k]} |")
+                lines.append(f"| {e.name} | {k} | {v:.4g} | {span} | {PARAM_UNITS[k]} | "
+                             f"{PARAM_MEANING[(e.name, k)]} |")
         if spans:
             lines += ["", "95 % interval: bootstrap over the input holds the creep was fitted "
                       "on (tau widened by one grid step each way)."]

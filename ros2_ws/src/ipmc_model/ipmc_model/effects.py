@@ -110,6 +110,25 @@ PARAM_UNITS = {
     "gain_mm_per_v_per_s": "mm/(V/s)",
 }
 
+#: What each fitted parameter means on the bench, by (effect, parameter), for reports.
+PARAM_MEANING = {
+    ("creep", "tau_s"): "time constant of the slow relaxation under a held voltage",
+    ("creep", "gain_mm_per_v"): "creep's final displacement per volt held (< 0: relaxes back "
+                                "against the bending)",
+    ("drift", "gain_loss_per_min"): "share of the gain lost per minute of the record",
+    ("drift", "offset_mm_per_min"): "offset gained per minute of the record",
+    ("delay", "delay_s"): "transport delay from the voltage to the tip",
+    ("dead_zone", "width_v"): "voltage magnitude below which the tip does not move",
+    ("asymmetry", "negative_gain_ratio"): "negative voltages act this share as strongly as "
+                                          "before",
+    ("asymmetry", "negative_bending_ratio"): "the negative bending is this share of the "
+                                             "model's (one electrode face weaker)",
+    ("saturation", "limit_mm"): "displacement the tip approaches but cannot pass",
+    ("rate_dependence", "tau_s"): "low-pass of the voltage rate (the ionic current's lag)",
+    ("rate_dependence", "gain_mm_per_v_per_s"): "extra bending per V/s of voltage rate",
+    ("memory", "tau_s"): "low-pass of the voltage kept as a slow memory channel",
+}
+
 AUGMENTED_FORMAT = "ipmc-ros-augmented-model"
 AUGMENTED_FORMAT_VERSION = 1
 

@@ -117,7 +117,8 @@ def test_creep_found_with_undeclared_parameters(seed, creep, tmp_path):
     from ipmc_model.diagnose import write_report
 
     write_report(d, tmp_path)
-    assert f"| creep | tau_s | {fitted['tau_s']:.4g} | {lo:.4g} to {hi:.4g} | s |" in (
+    assert (f"| creep | tau_s | {fitted['tau_s']:.4g} | {lo:.4g} to {hi:.4g} | s | "
+            "time constant of the slow relaxation under a held voltage |") in (
         tmp_path / "report.md").read_text()
 
 

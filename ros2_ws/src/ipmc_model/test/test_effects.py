@@ -10,6 +10,8 @@ from ipmc_driver.plant import IpmcPlant
 from ipmc_driver.signals import mixed, random_sine, random_steps
 from ipmc_model.effects import (
     EFFECT_NAMES,
+    PARAM_MEANING,
+    PARAM_UNITS,
     AugmentedModel,
     Effect,
     dead_time_test,
@@ -49,6 +51,13 @@ def record():
 def base(record):
     u, y = record
     return AugmentedModel.identify(_narx(), u, y, (), 1 / RATE)
+
+
+def test_every_parameter_has_a_unit_and_a_meaning():
+    # the report's Fitted effects table reads both for every parameter of every form
+    for name, keys in list(Effect._KEYS.items()) + list(Effect._OUTPUT_KEYS.items()):
+        for k in keys:
+            assert k in PARAM_UNITS and PARAM_MEANING[(name, k)]
 
 
 def test_effect_validates_parameters():
