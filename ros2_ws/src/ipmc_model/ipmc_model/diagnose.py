@@ -392,18 +392,25 @@ class Diagnosis:
 
 #: Input-shift warning (:func:`input_shift`): the held-out part's 95 % input bandwidth differs
 #: from the fit part's by more than this factor, or its share of samples in input holds by more
-#: than :data:`SHIFT_HOLD_SHARE`.
+#: than :data:`SHIFT_HOLD_SHARE`, or its input goes beyond the fit part's range by more than
+#: :data:`SHIFT_RANGE_SHARE` of that range's span (a baseline fitted on the record has never
+#: seen those voltages: on the bench's dead-zone record of seed 4 the held-out input reached
+#: -2.49 V after -1.49 V at most, and an asymmetry, which scales the negative voltages, was
+#: accepted; docs/diagnose.md, session 27).
 SHIFT_BANDWIDTH_FACTOR = 3.0
 SHIFT_HOLD_SHARE = 0.3
+SHIFT_RANGE_SHARE = 0.2
 
 
 def input_shift(u_fit, u_held, rate_hz: float) -> dict:
-    """Is the held-out input of the fit part's kind? 95 % power bandwidth (Hz) and share of
-    samples in input holds of >= 3 s (:func:`~ipmc_model.residuals.find_holds`) of each part,
-    and ``shifted`` when they differ by more than :data:`SHIFT_BANDWIDTH_FACTOR` /
-    :data:`SHIFT_HOLD_SHARE`: then the held-out numbers measure extrapolation to another
-    kind of input (e.g. ``ipmc simulate --input mixed``, whose last quarter is held levels the
-    sines before never showed), and an effect can "win" by changing the extrapolation."""
+    """Is the held-out input of the fit part's kind? 95 % power bandwidth (Hz), share of
+    samples in input holds of >= 3 s (:func:`~ipmc_model.residuals.find_holds`) and range (V)
+    of each part, and ``shifted`` when they differ by more than :data:`SHIFT_BANDWIDTH_FACTOR`
+    / :data:`SHIFT_HOLD_SHARE`, or the held-out input goes beyond the fit part's range by more
+    than :data:`SHIFT_RANGE_SHARE` of its span: then the held-out numbers measure
+    extrapolation to another kind of input (e.g. ``ipmc simulate --input mixed``, whose last
+    quarter is held levels the sines before never showed) or to voltages the fit part never
+    reached, and an effect can "win" by changing the extrapolation."""
     from .residuals import find_holds
 
     def stats(u):
@@ -413,17 +420,28 @@ def input_shift(u_fit, u_held, rate_hz: float) -> dict:
         held = sum(e - s for s, e in find_holds(u, 1.0 / rate_hz, 3.0))
         return max(f95, float(f[1]) if f.size > 1 else 1e-3), held / u.size
 
-    (bf, hf), (bh, hh) = stats(np.asarray(u_fit, float)), stats(np.asarray(u_held, float))
+    uf, uh = np.asarray(u_fit, float), np.asarray(u_held, float)
+    (bf, hf), (bh, hh) = stats(uf), stats(uh)
     ratio = max(bf, bh) / max(min(bf, bh), 1e-12)
-    shifted = bool(ratio > SHIFT_BANDWIDTH_FACTOR or abs(hf - hh) > SHIFT_HOLD_SHARE)
-    text = (f"input of the fit part: 95 % bandwidth {bf:.3g} Hz, {100 * hf:.0f} % in holds; "
-            f"held-out part: {bh:.3g} Hz, {100 * hh:.0f} % in holds")
+    lo, hi = float(uf.min()), float(uf.max())
+    beyond = max(float(uh.max()) - hi, lo - float(uh.min()), 0.0)
+    share = beyond / max(hi - lo, 1e-12)
+    wide = bool(share > SHIFT_RANGE_SHARE)
+    shifted = bool(ratio > SHIFT_BANDWIDTH_FACTOR or abs(hf - hh) > SHIFT_HOLD_SHARE or wide)
+    text = (f"input of the fit part: 95 % bandwidth {bf:.3g} Hz, {100 * hf:.0f} % in holds, "
+            f"{lo:.3g} to {hi:.3g} V; held-out part: {bh:.3g} Hz, {100 * hh:.0f} % in holds, "
+            f"{float(uh.min()):.3g} to {float(uh.max()):.3g} V")
     if shifted:
-        text = ("WARNING: the held-out input is not of the fit part's kind (" + text + "): the "
-                "held-out numbers measure extrapolation, and an effect can be accepted for "
-                "changing it; record an input whose kind does not change over time")
+        text = ("WARNING: the held-out input is not of the fit part's kind (" + text
+                + (f"; it goes {beyond:.3g} V beyond the fit part's range, "
+                   f"{100 * share:.0f} % of its span" if wide else "")
+                + "): the held-out numbers measure extrapolation, and an effect can be "
+                "accepted for changing it; record an input whose kind and range do not change "
+                "over time")
     return {"bandwidth_fit_hz": bf, "bandwidth_held_hz": bh, "hold_share_fit": hf,
-            "hold_share_held": hh, "shifted": shifted, "text": text}
+            "hold_share_held": hh, "range_fit_v": [lo, hi],
+            "range_held_v": [float(uh.min()), float(uh.max())], "beyond_range_share": share,
+            "shifted": shifted, "text": text}
 
 
 def _held_out(model: AugmentedModel, u, y, cut):

@@ -695,3 +695,22 @@ def test_input_shift_flags_a_held_out_part_of_another_kind():
     cut = int(0.7 * u.size)
     same = input_shift(u[:cut], u[cut:], RATE)
     assert not same["shifted"] and "WARNING" not in same["text"]
+    assert same["beyond_range_share"] <= 0.2
+
+
+def test_input_shift_flags_a_held_out_input_beyond_the_fit_range():
+    # the bench's input on seed 4 (docs/diagnose.md, session 27): the held-out part reaches
+    # -2.49 V, the fit part -1.49 V at most, and a dead-zone record got a false asymmetry; the
+    # same kind of input otherwise (bandwidth, holds)
+    _, us = random_sine(90.0, RATE, 2.5, (0.05, 1.0), 8, seed=6)
+    _, st = random_steps(90.0, RATE, 1.5, (3.0, 10.0), seed=7)
+    u = np.clip(0.6 * us + st, -3, 3)
+    cut = int(0.7 * u.size)
+    s = input_shift(u[:cut], u[cut:], RATE)
+    assert s["range_fit_v"] == pytest.approx([-1.49, 2.39], abs=0.01)
+    assert s["range_held_v"][0] == pytest.approx(-2.49, abs=0.01)
+    assert s["beyond_range_share"] == pytest.approx(1.0 / 3.88, abs=0.01)
+    assert s["shifted"] and "1 V beyond the fit part's range, 26 % of its span" in s["text"]
+    # the same record split the other way round stays inside: no warning from the range
+    inside = input_shift(u, u[:cut], RATE)
+    assert inside["beyond_range_share"] == 0.0 and not inside["shifted"]
