@@ -423,14 +423,14 @@ def input_shift(u_fit, u_held, rate_hz: float) -> dict:
     uf, uh = np.asarray(u_fit, float), np.asarray(u_held, float)
     (bf, hf), (bh, hh) = stats(uf), stats(uh)
     ratio = max(bf, bh) / max(min(bf, bh), 1e-12)
-    lo, hi = float(uf.min()), float(uf.max())
-    beyond = max(float(uh.max()) - hi, lo - float(uh.min()), 0.0)
+    (lo, hi), (lo_h, hi_h) = (float(uf.min()), float(uf.max())), (float(uh.min()), float(uh.max()))
+    beyond = max(hi_h - hi, lo - lo_h, 0.0)
     share = beyond / max(hi - lo, 1e-12)
     wide = bool(share > SHIFT_RANGE_SHARE)
     shifted = bool(ratio > SHIFT_BANDWIDTH_FACTOR or abs(hf - hh) > SHIFT_HOLD_SHARE or wide)
     text = (f"input of the fit part: 95 % bandwidth {bf:.3g} Hz, {100 * hf:.0f} % in holds, "
             f"{lo:.3g} to {hi:.3g} V; held-out part: {bh:.3g} Hz, {100 * hh:.0f} % in holds, "
-            f"{float(uh.min()):.3g} to {float(uh.max()):.3g} V")
+            f"{lo_h:.3g} to {hi_h:.3g} V")
     if shifted:
         text = ("WARNING: the held-out input is not of the fit part's kind (" + text
                 + (f"; it goes {beyond:.3g} V beyond the fit part's range, "
@@ -439,9 +439,8 @@ def input_shift(u_fit, u_held, rate_hz: float) -> dict:
                 "accepted for changing it; record an input whose kind and range do not change "
                 "over time")
     return {"bandwidth_fit_hz": bf, "bandwidth_held_hz": bh, "hold_share_fit": hf,
-            "hold_share_held": hh, "range_fit_v": [lo, hi],
-            "range_held_v": [float(uh.min()), float(uh.max())], "beyond_range_share": share,
-            "shifted": shifted, "text": text}
+            "hold_share_held": hh, "range_fit_v": [lo, hi], "range_held_v": [lo_h, hi_h],
+            "beyond_range_share": share, "shifted": shifted, "text": text}
 
 
 def _held_out(model: AugmentedModel, u, y, cut):
