@@ -328,6 +328,25 @@ def test_given_model_from_a_clean_day_names_what_changed(day1_model, effect, par
 
 
 
+@pytest.mark.parametrize("seed, effects, found", [
+    (7, {}, []),
+    (0, {"drift": {"gain_loss_per_min": 0.1, "offset_mm_per_min": 0.3}}, ["drift"]),
+])
+def test_a_drift_around_a_given_model_must_show_as_a_trend(seed, effects, found):
+    """`bench_diagnose.py stale` (full tuning): on seed 7 (not used to design) the clean later
+    day got a drift around the clean day's model (0.034 /min, +24 %) and without the reach rule
+    a 21.6 mm limit; both rules now hold around a given model (docs/diagnose.md, session 27).
+    The plant's drift on seed 0 is still found."""
+    day1 = _mixed_record({}, seed=seed)
+    model = diagnose(*day1, candidates=()).model_before
+    d = diagnose(*_mixed_record(effects, seed=seed + 100), model=model)
+    assert d.effects_found[:1] == found
+    drift = [c for c in d.candidates if c.effect == "drift" and "drift_trend" in c.evidence]
+    assert drift, "the drift block around the model is tested for a trend"
+    lower = drift[0].evidence["drift_trend"]["lower"]
+    assert (lower > 0) == bool(found)
+
+
 # Memory channels (docs/diagnose.md, "Memory channels"): time constants 1 and 3 s chosen on an
 # oracle on seeds 0, 1; seeds 6, 7 used for nothing. `mixed` 1.5 V, 120 s at 50 Hz. Measured
 # with FAST: 0.3 V found on both seeds with memory, on seed 7 only without; 0.5 V found on
