@@ -856,7 +856,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                             "text": f"{name} signature not finite"}
             # The reach and trend rules hold around a given model too (session 27): on a clean
             # later day (stale seed 7) the block around the model passed a drift without a
-            # trend, and without that rule a limit at 5 x the data's peak.
+            # trend, and without that rule a limit at 3 x the data's peak.
             if name == "saturation":
                 # A limit is a finding only where the data come near it. Far beyond their peak
                 # tanh is a mild curvature, not a limit: a limit at 2 x the peak of a creep and
