@@ -1363,7 +1363,8 @@ def _frozen_grid(name: str, u, y, dt_s: float) -> list[float]:
     return list(np.max(np.abs(y)) * np.geomspace(0.8, 3.0, n))
 
 
-def fit_frozen_effect(name: str, model: AugmentedModel, u, y) -> tuple[AugmentedModel, Effect]:
+def fit_frozen_effect(name: str, model: AugmentedModel, u, y, *,
+                      window: tuple[int, int] | None = None) -> tuple[AugmentedModel, Effect]:
     """Fit the block ``name`` around ``model`` kept as it is (nothing refitted).
 
     For a model fitted on other data (a model given to the diagnosis: yesterday's rig, before
@@ -1388,11 +1389,16 @@ def fit_frozen_effect(name: str, model: AugmentedModel, u, y) -> tuple[Augmented
     from 0.02 s to a third of the model's lag window, then Brent) g by least squares on the
     free-run residual, the model's output and a constant as nuisance terms.
 
+    ``window`` = (start, stop): fit on those samples of (u, y) only; the model still runs over
+    all of ``u`` from its start, so its states and the drift's time are those of the record
+    (the diagnosis's split-half check, docs/diagnose.md, session 28).
+
     Returns
     -------
     (AugmentedModel, Effect)
         The model with the effect appended (same baseline object), and the effect, whose
-        ``frozen_`` attribute holds the fit (``{"fit_rmse_mm", "fit_rmse_before_mm"}``).
+        ``frozen_`` attribute holds the fit (``{"fit_rmse_mm", "fit_rmse_before_mm"}``, on the
+        window).
     """
     if name not in FROZEN_EFFECTS:
         raise ValueError(f"{name!r} cannot be fitted around a frozen model; frozen fits: "
@@ -1403,30 +1409,39 @@ def fit_frozen_effect(name: str, model: AugmentedModel, u, y) -> tuple[Augmented
     y = as_signal("y", y)
     same_length(u=u, y=y)
     L = model.max_lag_
+    start, stop = (0, u.size) if window is None else (int(window[0]), int(window[1]))
+    if not 0 <= start < stop <= u.size or stop - max(start, L) < 2:
+        raise ValueError(f"window {window} leaves no samples to fit on (N = {u.size}, "
+                         f"max lag {L})")
+    skip = max(start, L)
+    grid = _frozen_grid(name, u, y, model.dt_s)  # the whole record's: a window changes no grid
+    u, y = u[:stop], y[:stop]  # the runs are causal: what follows the window changes nothing
+
+    def free_rmse(m: AugmentedModel) -> float:
+        return _rmse_after(m.simulate(u, y[:L]), y, skip)
+
     z = model.simulate(u, y[:L])  # the model's free run, once: drift and rate start from it
-    rmse_model = _rmse_after(z, y, L)
+    rmse_model = _rmse_after(z, y, skip)
     if name == "drift":
         # linear around a fixed model: the backfit's first pass, nothing refitted (without the
         # constant gain as nuisance a stale model passed a drift of +42 % on a dead-zone record)
-        eff = _drift_on_residual(z, y, np.arange(u.size) * model.dt_s / 60.0, L)
+        eff = _drift_on_residual(z, y, np.arange(u.size) * model.dt_s / 60.0, skip)
         out = AugmentedModel(model.baseline, model.effects + [eff], model.dt_s)
-        eff.frozen_ = {"fit_rmse_mm": _free_run_rmse(out, u, y),
-                       "fit_rmse_before_mm": rmse_model}
+        eff.frozen_ = {"fit_rmse_mm": free_rmse(out), "fit_rmse_before_mm": rmse_model}
         return out, eff
     if name == "rate_dependence":
-        return _fit_frozen_rate(model, u, y, z, rmse_model)
+        return _fit_frozen_rate(model, u, y, z, rmse_model, skip)
     # asymmetry has two physical forms, the negative voltage or the negative bending scaled;
     # the one that fits the fit part better is kept (docs/diagnose.md, session 27)
     keys = ((Effect._KEYS[name][0], Effect._OUTPUT_KEYS[name][0]) if name == "asymmetry"
             else (Effect._KEYS[name][0],))
-    grid = _frozen_grid(name, u, y, model.dt_s)
     fits = []
     for key in keys:
         def score(value: float, key=key) -> float:
             m = AugmentedModel(model.baseline, model.effects + [Effect(name, **{key: value})],
                                model.dt_s)
             with np.errstate(all="ignore"):
-                return _free_run_rmse(m, u, y)
+                return free_rmse(m)
 
         scores = [score(v) for v in grid]
         i = int(np.argmin(scores))
@@ -1454,7 +1469,7 @@ FROZEN_RATE_TAU_MIN_S = 0.02  # the current's low-pass: from a sample or two ...
 FROZEN_RATE_WINDOW_SHARE = 1.0 / 3.0  # ... to a third of the model's lag window, as the channel
 
 
-def _fit_frozen_rate(model: AugmentedModel, u, y, z, rmse_model: float
+def _fit_frozen_rate(model: AugmentedModel, u, y, z, rmse_model: float, skip: int
                      ) -> tuple[AugmentedModel, Effect]:
     # Linear in the gain for a given tau: least squares on the free-run residual, with the
     # model's own output and a constant as nuisance terms (a model from another day may be off
@@ -1463,13 +1478,13 @@ def _fit_frozen_rate(model: AugmentedModel, u, y, z, rmse_model: float
     # residual without simulating the model again (z: its free run on the fit part).
     L = model.max_lag_
     dt = model.dt_s
-    r = (y - z)[L:]
-    nuis = np.column_stack([z[L:], np.ones(r.size)])
+    r = (y - z)[skip:]
+    nuis = np.column_stack([z[skip:], np.ones(r.size)])
 
     def fit(log_tau: float) -> tuple[float, float]:
         tau = float(np.exp(log_tau))
         rho = Effect("rate_dependence", tau_s=tau,
-                     gain_mm_per_v_per_s=1.0).rate_state(u, dt)[L:]
+                     gain_mm_per_v_per_s=1.0).rate_state(u, dt)[skip:]
         coef, *_ = np.linalg.lstsq(np.column_stack([rho, nuis]), r, rcond=None)
         return float(coef[0]), float(np.sqrt(np.mean((r - coef[0] * rho) ** 2)))
 
@@ -1491,7 +1506,8 @@ def _fit_frozen_rate(model: AugmentedModel, u, y, z, rmse_model: float
         best = float(res.x)
     eff = Effect("rate_dependence", tau_s=float(np.exp(best)), gain_mm_per_v_per_s=fit(best)[0])
     out = AugmentedModel(model.baseline, model.effects + [eff], dt)
-    eff.frozen_ = {"fit_rmse_mm": _free_run_rmse(out, u, y), "fit_rmse_before_mm": rmse_model}
+    eff.frozen_ = {"fit_rmse_mm": _rmse_after(out.simulate(u, y[:L]), y, skip),
+                   "fit_rmse_before_mm": rmse_model}
     return out, eff
 
 

@@ -347,6 +347,26 @@ def test_a_drift_around_a_given_model_must_show_as_a_trend(seed, effects, found)
     assert (lower > 0) == bool(found)
 
 
+def test_a_static_block_around_a_given_model_must_fit_either_half():
+    """`bench_diagnose.py stale 7 saturation` (full tuning; seed 7 was used to design nothing
+    before session 27): after the plant's 2.5 mm limit an asymmetry 0.96 passed (+10.8 %) that
+    the first half of the fit part is fitted best without; a block that does not change in time
+    must gain on either half too (docs/diagnose.md, session 28). The limit keeps its gain on
+    both halves."""
+    model = diagnose(*_mixed_record({}, seed=7), candidates=()).model_before
+    sat = {"saturation": {"limit_mm": 2.5}}
+    d = diagnose(*_mixed_record(sat, seed=107), model=model)
+    assert d.effects_found == ["saturation"]
+    limit = [c for c in d.candidates if c.accepted][0].evidence
+    assert limit["params"]["limit_mm"] == pytest.approx(2.5, rel=0.02)
+    assert min(limit["half_improvements"]) >= limit["threshold"]
+    asym = [c.evidence for c in d.candidates
+            if c.effect == "asymmetry" and c.evidence["round"] == 2]
+    assert asym[0]["improvement"] >= asym[0]["threshold"]  # what passed before
+    assert min(asym[0]["half_improvements"]) < asym[0]["threshold"]
+    assert "fitted on either half of the fit part no block" in asym[0]["text"]
+
+
 # Memory channels (docs/diagnose.md, "Memory channels"): time constants 1 and 3 s chosen on an
 # oracle on seeds 0, 1; seeds 6, 7 used for nothing. `mixed` 1.5 V, 120 s at 50 Hz. Measured
 # with FAST: 0.3 V found on both seeds with memory, on seed 7 only without; 0.5 V found on

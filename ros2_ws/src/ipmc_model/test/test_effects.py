@@ -526,6 +526,28 @@ def test_frozen_fit_finds_a_dead_zone_narrower_than_its_grid_step(record, base):
     assert eff.params["width_v"] == pytest.approx(width, rel=0.1)
 
 
+def test_frozen_fit_on_a_window_sees_only_that_window(record, base):
+    # the diagnosis's split-half check: a dead zone that sets in half way through the record
+    # is found on the second half alone, at its width, and refused on the first half alone
+    u, _ = record
+    h = u.size // 2
+    truth = AugmentedModel(base.baseline, [Effect("dead_zone", width_v=0.35)], base.dt_s)
+    y = np.concatenate([base.simulate(u)[:h], truth.simulate(u)[h:]])
+    y = y + 0.005 * np.random.default_rng(4).standard_normal(u.size)
+    _, late = fit_frozen_effect("dead_zone", base, u, y, window=(h, u.size))
+    assert late.params["width_v"] == pytest.approx(0.35, rel=0.05)
+    assert late.frozen_["fit_rmse_mm"] < 0.02 < late.frozen_["fit_rmse_before_mm"]
+    with pytest.raises(ValueError, match="best without it"):
+        fit_frozen_effect("dead_zone", base, u, y, window=(0, h))
+    # the whole record as a window is no window; a window with no samples is refused
+    _, whole = fit_frozen_effect("dead_zone", base, u, y)
+    _, same = fit_frozen_effect("dead_zone", base, u, y, window=(0, u.size))
+    assert same.params == whole.params and same.frozen_ == whole.frozen_
+    for bad in ((h, h), (-1, h), (0, u.size + 1)):
+        with pytest.raises(ValueError, match="leaves no samples"):
+            fit_frozen_effect("dead_zone", base, u, y, window=bad)
+
+
 def test_frozen_fit_refuses_a_block_the_data_do_not_need(record, base):
     u, _ = record
     y = base.simulate(u) + 0.005 * np.random.default_rng(1).standard_normal(u.size)
