@@ -18,7 +18,7 @@ import pytest
 from ipmc_driver.dataio import Record, save_csv
 from ipmc_driver.plant import IpmcPlant
 from ipmc_driver.signals import mixed, random_sine, random_steps
-from ipmc_model.diagnose import choose_lag_step, diagnose, input_shift
+from ipmc_model.diagnose import block_direction, choose_lag_step, diagnose, input_shift
 from ipmc_model.diagnose_cli import main
 
 RATE = 50.0
@@ -365,6 +365,31 @@ def test_a_static_block_around_a_given_model_must_fit_either_half():
     assert asym[0]["improvement"] >= asym[0]["threshold"]  # what passed before
     assert min(asym[0]["half_improvements"]) < asym[0]["threshold"]
     assert "fitted on either half of the fit part no block" in asym[0]["text"]
+
+
+def test_block_direction_is_the_side_or_the_sign():
+    assert block_direction("asymmetry", {"negative_gain_ratio": 0.9}) == -1.0
+    assert block_direction("asymmetry", {"negative_bending_ratio": 1.1}) == 1.0
+    assert block_direction("rate_dependence", {"tau_s": 0.2, "gain_mm_per_v_per_s": -0.01}) == -1
+    assert block_direction("dead_zone", {"width_v": 0.3}) == 0.0
+
+
+def test_a_block_around_a_given_model_keeps_its_direction_beside_another():
+    """`bench_diagnose.py stale 4 drift` (full tuning): fitted alone the asymmetry made the
+    negative side weaker (0.94); after the drift it made it stronger (1.09, +15.1 %, both halves
+    passing) and was accepted beside the drift. A change of the plant does not reverse when
+    another block is added (docs/diagnose.md, session 28)."""
+    model = diagnose(*_mixed_record({}, seed=4), candidates=()).model_before
+    fx = {"drift": {"gain_loss_per_min": 0.1, "offset_mm_per_min": 0.3}}
+    d = diagnose(*_mixed_record(fx, seed=104), model=model)
+    assert d.effects_found == ["drift"]
+    asym = {c.evidence["round"]: c.evidence for c in d.candidates
+            if c.effect == "asymmetry" and "params" in c.evidence}
+    assert block_direction("asymmetry", asym[1]["params"]) == -1.0
+    assert block_direction("asymmetry", asym[2]["params"]) == 1.0
+    assert asym[2]["improvement"] >= asym[2]["threshold"]  # what passed before
+    assert not asym[2]["significant"]
+    assert "pointed the other way" in asym[2]["text"]
 
 
 # Memory channels (docs/diagnose.md, "Memory channels"): time constants 1 and 3 s chosen on an
