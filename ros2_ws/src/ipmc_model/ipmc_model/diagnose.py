@@ -977,11 +977,11 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                               and not frozen)
             pairs = ((name in REFIT_EFFECTS or paired_creep) and not frozen
                      and test["significant"])
-            gains = [gain]
+            paired = []  # with the row budgets (a refitted NARX)
             if (pairs or untested_creep) and gain >= need:
                 # the gain must not hang on the rows the LSSVM happened to be fitted on
-                gains += paired_gains(current, eff, variants)
-            ev_half = {}
+                paired = paired_gains(current, eff, variants)
+            half = []  # fitted on either half of the fit part (a block around a given model)
             halves = (frozen and name in SPLIT_HALF_EFFECTS and test["significant"]
                       and test["r"] > 0 and gain >= need)
             if halves:
@@ -991,8 +991,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                 # in time (stale seed 7: an asymmetry 0.96 beside the saturation, fitted best
                 # without it on the first half; seed 1: a 0.06 V dead zone for a drift).
                 half, half_text = half_gains(current, name)
-                gains += half
-                ev_half = {"half_improvements": half}
+            gains = [gain] + paired + half
             change = (free - ana_cur["free_run"])[L:]
             contribution = (float(np.sqrt(np.mean(change ** 2))) if np.all(np.isfinite(change))
                             else 0.0)
@@ -1003,7 +1002,8 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                   "signature_corr": test["r"], "signature_bound_95": test["bound"],
                   "significant": bool(test["significant"] and test["r"] > 0),
                   "improvement": gain, "threshold": need, "refit_spread": spread,
-                  "paired_improvements": gains[1:] if not halves else [], **ev_half,
+                  "paired_improvements": paired,
+                  **({"half_improvements": half} if halves else {}),
                   "contribution_mm": contribution, "noise_floor_mm": floor_mm,
                   "material": bool(material),
                   "fit": ("block around the given model, not refitted" if frozen
@@ -1036,14 +1036,14 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                                                           "gain_interval_mm_per_v",
                                                           "fast_tau_s", "nuisance_tau_s",
                                                           "nuisance_mm_per_v") if k in fit}}
-            paired = ", ".join(f"{100 * g:+.1f}" for g in gains[1:])
-            paired = f"; refitted on other rows {paired} %" if paired else ""
+            checks = (f"; refitted on other rows {', '.join(f'{100 * g:+.1f}' for g in paired)} %"
+                      if paired else "")
             if halves:
-                paired = f"; fitted on either half of the fit part {', '.join(half_text)}"
+                checks = f"; fitted on either half of the fit part {', '.join(half_text)}"
             ev["text"] = (("block around the given model (not refitted): " if frozen else "")
                           + f"{test['text']}; held-out free-run RMSE "
                           f"{rmse_cur:.4f} -> {rm:.4f} mm ({100 * gain:+.1f} %, needs "
-                          f"{100 * need:.0f} %{paired}); changes the prediction by "
+                          f"{100 * need:.0f} %{checks}); changes the prediction by "
                           f"{contribution:.4f} mm RMS (noise floor {floor_mm:.4f} mm"
                           + ("" if material else ": below it, not material") + ")")
             cand = Candidate(name, rm, False, ev, m)
