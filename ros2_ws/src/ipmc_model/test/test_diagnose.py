@@ -392,6 +392,30 @@ def test_a_block_around_a_given_model_keeps_its_direction_beside_another():
     assert "pointed the other way" in asym[2]["text"]
 
 
+def test_two_changes_that_hide_each_other_are_found_together():
+    """`combos.py` (session 29; the `stale` bench with an asymmetry 1.25 and a drift at once,
+    full tuning, seed 2): alone, the drift lost 21 % on the held-out part (the asymmetry pulls
+    it) and the asymmetry 36 %, so nothing was found. Fitted beside each other in turn, both
+    pass all their tests (docs/diagnose.md, session 29)."""
+    model = diagnose(*_mixed_record({}, seed=2), candidates=()).model_before
+    fx = {"asymmetry": {"negative_gain_ratio": 1.25},
+          "drift": {"gain_loss_per_min": 0.1, "offset_mm_per_min": 0.3}}
+    d = diagnose(*_mixed_record(fx, seed=102), model=model)
+    assert sorted(d.effects_found) == ["asymmetry", "drift"]
+    alone = [c.evidence for c in d.candidates if "beside" not in c.evidence
+             and "params" in c.evidence]
+    assert not any(e["significant"] and e["improvement"] >= e["threshold"] for e in alone)
+    acc = {c.effect: c.evidence for c in d.candidates if c.accepted}
+    assert acc["asymmetry"]["beside"] == "drift" and acc["drift"]["beside"] == "asymmetry"
+    assert [e.name for e in d.model_after.effects] == d.effects_found
+    fitted = {e.name: e.params for e in d.model_after.effects}
+    assert fitted["drift"]["gain_loss_per_min"] == pytest.approx(0.1, rel=0.3)
+    ratio = fitted["asymmetry"].get("negative_bending_ratio",
+                                    fitted["asymmetry"].get("negative_gain_ratio"))
+    assert 1.1 < ratio < 1.45
+    assert d.rmse_after_mm < 0.7 * d.rmse_before_mm
+
+
 # Memory channels (docs/diagnose.md, "Memory channels"): time constants 1 and 3 s chosen on an
 # oracle on seeds 0, 1; seeds 6, 7 used for nothing. `mixed` 1.5 V, 120 s at 50 Hz. Measured
 # with FAST: 0.3 V found on both seeds with memory, on seed 7 only without; 0.5 V found on
