@@ -6,6 +6,7 @@ third-party data (Bouc-Wen, piezo). Prints figures; not part of the pass/fail su
     .venv/bin/python benchmarks/bench_diagnose.py creepfit [SEED...]
     .venv/bin/python benchmarks/bench_diagnose.py slowcreep [SEED...]
     .venv/bin/python benchmarks/bench_diagnose.py stale [SEED...] [LABEL_PREFIX...]
+    .venv/bin/python benchmarks/bench_diagnose.py combos [SEED...] [LABEL_PREFIX...]
 
 ``effects``: every case of :data:`CASES` through the CLI, without ``--model`` (seeds 0, 1, 2
 by default; they were used to design it).
@@ -14,6 +15,8 @@ by default; they were used to design it).
 3 V input) given with ``--model`` to the record of a later day (seed + 100) on which the plant
 has a dead zone, a saturation, a drift, an asymmetry or a rate dependence (or nothing): what
 changed since, fitted around the model (seeds 0, 1 by default; they were used to design it).
+``combos``: the same with two changes at once (:data:`COMBO_CHANGES`; seeds 0-3 by default,
+used to design the rules for two changes in sessions 28-29).
 
 ``creepfit``: the creep candidate alone (``diagnose(candidates=("creep",))``, full tuning) on
 ``creep_hold_experiment``'s kind of record (300 s of random 2.5 V steps held 0.5-5 s, 100 Hz),
@@ -191,7 +194,19 @@ STALE_CHANGES = (
 )
 
 
-def stale(tmp, seeds=(0, 1), amplitude=3.0, only=None):
+COMBO_CHANGES = (
+    ("asymmetry 0.8 + drift", {"asymmetry": {"negative_gain_ratio": 0.8},
+                               "drift": {"gain_loss_per_min": 0.1, "offset_mm_per_min": 0.3}}),
+    ("asymmetry 0.8 + dead zone 0.3 V", {"asymmetry": {"negative_gain_ratio": 0.8},
+                                         "dead_zone": {"width_v": 0.3}}),
+    ("asymmetry 1.25 + drift", {"asymmetry": {"negative_gain_ratio": 1.25},
+                                "drift": {"gain_loss_per_min": 0.1, "offset_mm_per_min": 0.3}}),
+    ("saturation 3 mm + asymmetry 0.8", {"saturation": {"limit_mm": 3.0},
+                                         "asymmetry": {"negative_gain_ratio": 0.8}}),
+)
+
+
+def stale(tmp, seeds=(0, 1), amplitude=3.0, only=None, changes=STALE_CHANGES):
     """A model from a clean day, given with --model, on a later day's record with a change
     (``only``: labels starting with one of these prefixes; "none" always runs)."""
     from ipmc_driver.signals import mixed
@@ -206,7 +221,7 @@ def stale(tmp, seeds=(0, 1), amplitude=3.0, only=None):
             return save_csv(Record(run.t_s, run.u_v, run.y_mm), Path(tmp) / f"{name}.csv")
 
         _, _, s1 = run_cli(record({}, seed, f"day1_{seed}"), Path(tmp) / f"day1_{seed}")
-        for label, fx in STALE_CHANGES:
+        for label, fx in changes:
             if only and label != "none" and not label.startswith(only):
                 continue
             name = f"day2_{seed}_{label.replace(' ', '_').replace('/', '')}"
@@ -259,6 +274,10 @@ if __name__ == "__main__":
             args = sys.argv[2:]
             stale(tmp, tuple(int(a) for a in args if a.isdigit()) or (0, 1),
                   only=tuple(a for a in args if not a.isdigit()) or None)
+        if what == "combos":
+            args = sys.argv[2:]
+            stale(tmp, tuple(int(a) for a in args if a.isdigit()) or (0, 1, 2, 3),
+                  only=tuple(a for a in args if not a.isdigit()) or None, changes=COMBO_CHANGES)
         if what == "creepfit":
             creepfit(tuple(int(a) for a in sys.argv[2:]) or (0, 1, 3))
         if what == "slowcreep":
