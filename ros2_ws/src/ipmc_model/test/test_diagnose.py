@@ -416,6 +416,26 @@ def test_two_changes_that_hide_each_other_are_found_together():
     assert d.rmse_after_mm < 0.7 * d.rmse_before_mm
 
 
+def test_a_static_block_that_took_in_another_is_refitted_with_it():
+    """`bench_diagnose.py combos 4` (session 29; full tuning): with an asymmetry 0.8 and a 0.3 V
+    dead zone, the dead zone alone was fitted at 0.48 V and the asymmetry beside it gained
+    2.6 %. Refitted jointly (docs/diagnose.md, session 29), both are found near the plant's."""
+    model = diagnose(*_mixed_record({}, seed=4), candidates=()).model_before
+    fx = {"asymmetry": {"negative_gain_ratio": 0.8}, "dead_zone": {"width_v": 0.3}}
+    d = diagnose(*_mixed_record(fx, seed=104), model=model)
+    assert sorted(d.effects_found) == ["asymmetry", "dead_zone"]
+    assert [e.name for e in d.model_after.effects] == d.effects_found
+    first = next(c for c in d.candidates if c.effect == "dead_zone" and "refitted" in c.evidence)
+    assert not first.accepted and first.evidence["params"]["width_v"] > 0.4
+    fitted = {e.name: e.params for e in d.model_after.effects}
+    assert fitted["dead_zone"]["width_v"] == pytest.approx(0.3, rel=0.2)
+    ratio = fitted["asymmetry"].get("negative_bending_ratio",
+                                    fitted["asymmetry"].get("negative_gain_ratio"))
+    assert 0.7 < ratio < 0.92
+    acc = [c.evidence for c in d.candidates if c.accepted]
+    assert all("beside" in e for e in acc)
+
+
 # Memory channels (docs/diagnose.md, "Memory channels"): time constants 1 and 3 s chosen on an
 # oracle on seeds 0, 1; seeds 6, 7 used for nothing. `mixed` 1.5 V, 120 s at 50 Hz. Measured
 # with FAST: 0.3 V found on both seeds with memory, on seed 7 only without; 0.5 V found on

@@ -22,6 +22,7 @@ from ipmc_model.effects import (
     fit_frozen_effect,
     load_augmented,
     mask_model_settling,
+    refit_frozen_pair,
     saturation_test,
     save_augmented,
 )
@@ -546,6 +547,27 @@ def test_frozen_fit_on_a_window_sees_only_that_window(record, base):
     for bad in ((h, h), (-1, h), (0, u.size + 1)):
         with pytest.raises(ValueError, match="leaves no samples"):
             fit_frozen_effect("dead_zone", base, u, y, window=bad)
+
+
+def test_a_pair_refit_undoes_what_one_block_took_in(record, base):
+    # a dead zone fitted alone takes in an asymmetry that maps the input alike; refitted jointly
+    # with the asymmetry it comes back to its width (the diagnosis's backfit, session 29)
+    u, _ = record
+    truth = AugmentedModel(base.baseline, [Effect("dead_zone", width_v=0.3),
+                                           Effect("asymmetry", negative_gain_ratio=0.8)],
+                           base.dt_s)
+    y = truth.simulate(u) + 0.005 * np.random.default_rng(6).standard_normal(u.size)
+    alone, dz = fit_frozen_effect("dead_zone", base, u, y)
+    assert abs(dz.params["width_v"] - 0.3) > 0.02  # the asymmetry taken in
+    _, asym = fit_frozen_effect("asymmetry", alone, u, y)
+    joint, dz2 = refit_frozen_pair(alone, 0, asym, u, y)
+    assert dz2.params["width_v"] == pytest.approx(0.3, rel=0.05)
+    assert joint.effect_names == ["dead_zone"] and joint.effects[0] is dz2
+    assert dz2.frozen_["pair_with"] == "asymmetry"
+    _, asym2 = fit_frozen_effect("asymmetry", joint, u, y)
+    assert asym2.params["negative_gain_ratio"] == pytest.approx(0.8, rel=0.05)
+    with pytest.raises(ValueError, match="joint refits are for"):
+        refit_frozen_pair(alone, 0, Effect("delay", delay_s=0.02), u, y)
 
 
 def test_frozen_fit_refuses_a_block_the_data_do_not_need(record, base):
