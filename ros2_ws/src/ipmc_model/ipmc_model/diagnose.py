@@ -1115,11 +1115,12 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
     def backfit(round_cands, rnd):
         """After a static block A was accepted, a static candidate B that fails beside it can
         have been taken in by A (stale records with an asymmetry 0.8 and a 0.3 V dead zone: the
-        dead zone alone 0.40-0.54 V, the asymmetry beside it 0.94-0.96, +2.6..9.7 %). A and B
-        are refitted jointly (:func:`~ipmc_model.effects.refit_frozen_pair`); B is refitted
-        beside the new A and must pass all its tests there, its gain counted against the
-        current model; A is refitted beside that B alone and must pass all its tests too. The
-        best such pair: (old A's candidate, B's, A's refit), or None."""
+        dead zone alone 0.40-0.54 V, the asymmetry beside it 0.94-0.96, gaining too little or
+        not on both halves). A and B are refitted jointly
+        (:func:`~ipmc_model.effects.refit_frozen_pair`); B is refitted beside the new A and must
+        pass all its tests there, its gain counted against the current model; A is refitted
+        beside that B alone and must pass all its tests too. The best such pair: (old A's
+        candidate, B's, A's refit), or None."""
         best = None
         for c in round_cands:
             if c.effect not in PAIR_REFIT_EFFECTS or not np.isfinite(c.rmse_mm):
