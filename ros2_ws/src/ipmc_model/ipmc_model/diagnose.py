@@ -513,6 +513,7 @@ REFIT_FREE_ALPHA = 1e-3
 #: (about 4.6 s each on 30 000 samples), and of the 30 records where it ran (session 29) no
 #: accepted pair came from a start beyond the second (docs/diagnose.md, session 29).
 LOOK_AHEAD_STARTS = 2
+#: Text of a candidate fitted in the look-ahead beside another block.
 LOOK_AHEAD_TEXT = "look-ahead (fitted with it, not accepted alone)"
 #: Text of a candidate fitted in a joint refit with an accepted block (``backfit``).
 JOINT_REFIT_TEXT = "joint refit (with an accepted block that took part of it in)"
@@ -1067,6 +1068,11 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
         say(f"{where}: {name}: {eff.describe()}; {ev['text']}")
         return cand
 
+    def with_blocks(effects):
+        """The given model's baseline with these blocks, and its analysis."""
+        m = AugmentedModel(current.baseline, effects, current.dt_s)
+        return m, analyse(m, u, y, cut)
+
     def look_ahead(round_cands, rnd, remaining):
         """Two changes of the plant at once can each hide the other from a block fitted alone
         (stale records with an asymmetry 1.25 and a drift: the asymmetry alone lost 11-57 %
@@ -1076,10 +1082,6 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
         other block B is fitted beside A; A is refitted beside that B alone and must pass all
         its tests there; B is refitted beside the new A and must pass all its tests too. The
         pair whose last fit ends lowest is returned (A, B), or None."""
-        def around(block):
-            m = AugmentedModel(current.baseline, current.effects + [block], current.dt_s)
-            return m, analyse(m, u, y, cut)
-
         starts = sorted((c for c in round_cands if c.effect in FROZEN_EFFECTS
                          and np.isfinite(c.rmse_mm) and (c.evidence["significant"]
                                                          or c.evidence["improvement"]
@@ -1099,12 +1101,12 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                              beside=a.effect, how=LOOK_AHEAD_TEXT)
                 if b is None or not b.evidence["material"]:
                     continue
-                m_b, ana_b = around(b.model.effects[-1])
+                m_b, ana_b = with_blocks(current.effects + [b.model.effects[-1]])
                 a2 = evaluate(a.effect, rnd, m_b, ana_b, ana_b["rmse_free_mm"], [], 0.0,
                               beside=name, how=LOOK_AHEAD_TEXT)
                 if a2 is None or not a2.passes:
                     continue
-                m_a, ana_a2 = around(a2.model.effects[-1])
+                m_a, ana_a2 = with_blocks(current.effects + [a2.model.effects[-1]])
                 b2 = evaluate(name, rnd, m_a, ana_a2, ana_a2["rmse_free_mm"], [], 0.0,
                               beside=a.effect, how=LOOK_AHEAD_TEXT)
                 if b2 is not None and b2.passes and (best is None
@@ -1138,9 +1140,8 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                              beside=f"{blk.name} refitted with it", how=JOINT_REFIT_TEXT)
                 if b is None or not b.passes:
                     continue
-                rest = [e for e in current.effects if e is not blk] + [b.model.effects[-1]]
-                m_b = AugmentedModel(current.baseline, rest, current.dt_s)
-                ana_b = analyse(m_b, u, y, cut)
+                m_b, ana_b = with_blocks([e for e in current.effects if e is not blk]
+                                         + [b.model.effects[-1]])
                 a2 = evaluate(blk.name, rnd, m_b, ana_b, ana_b["rmse_free_mm"], [], 0.0,
                               beside=c.effect, how=JOINT_REFIT_TEXT)
                 if a2 is not None and a2.passes and (best is None
