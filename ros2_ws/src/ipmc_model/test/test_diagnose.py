@@ -18,7 +18,14 @@ import pytest
 from ipmc_driver.dataio import Record, save_csv
 from ipmc_driver.plant import IpmcPlant
 from ipmc_driver.signals import mixed, random_sine, random_steps
-from ipmc_model.diagnose import block_direction, choose_lag_step, diagnose, input_shift
+from ipmc_model.diagnose import (
+    Candidate,
+    block_direction,
+    choose_lag_step,
+    creep_rival,
+    diagnose,
+    input_shift,
+)
 from ipmc_model.diagnose_cli import main
 
 RATE = 50.0
@@ -724,6 +731,61 @@ def test_a_drift_the_fit_part_does_not_trend_with_is_not_accepted():
     assert trend["lower"] == pytest.approx(trend["coef"] - 1.729 * trend["se"], abs=1e-3)
     assert trend["lower"] < 0
     assert not drift["significant"] and "not a drift" in drift["text"]
+
+
+def _cand(effect, rmse_mm, passes):
+    c = Candidate(effect, rmse_mm, False, {"round": 1}, model=object())
+    c.passes = passes
+    return c
+
+
+def test_a_creep_is_a_rival_only_of_a_passing_drift_it_explains_as_well():
+    creep = _cand("creep", 0.30, False)
+    drift = _cand("drift", 0.32, True)
+    assert creep_rival([creep, drift, _cand("delay", 0.2, True)]) == (drift, creep)
+    assert creep_rival([_cand("creep", 0.33, False), drift]) is None  # the drift does better
+    assert creep_rival([creep, _cand("drift", 0.25, False)]) is None  # the drift fails anyway
+    assert creep_rival([_cand("creep", float("inf"), False), drift]) is None  # no creep fit
+    assert creep_rival([drift]) is None
+    # a creep that passes and does better is accepted before the drift anyway
+    assert creep_rival([_cand("creep", 0.30, True), drift]) is None
+
+
+# Clean 3 V mixed records without --model (the stale bench's day 1), full tuning: a drift passed
+# on seeds 11 and 14 of 20 (session 29). On seed 14 the creep fitted in its place gained more
+# (+20.3 % against +14.4 %, undecided for lack of holds) and the drift gains 0.5 % beside it.
+# Creep (12 s, -0.6 mm/V) + drift on 1.5 V steps without holds, seed 2: the creep again explains
+# the held-out part better than the drift (0.5327 against 0.5423 mm), but the drift beside it
+# gains 17.5 %, a trend in time, and is kept (docs/diagnose.md, "A drift against a creep in its
+# place"). Seed 11's false drift stays: there the creep gains 2 %.
+def _creep_drift_steps(seed):
+    _, us = random_sine(120.0, RATE, 2.5, (0.05, 1.0), 8, seed=seed + 2)
+    _, st = random_steps(120.0, RATE, 1.5, (3.0, 10.0), seed=seed + 3)
+    u = np.clip(0.6 * us + st, -3, 3)
+    fx = {"creep": {"tau_s": 12.0, "gain_mm_per_v": -0.6}, **DRIFT}
+    return np.arange(u.size) / RATE, u, IpmcPlant(effects=fx, seed=seed, dt_s=1 / RATE).run(u).y_mm
+
+
+@pytest.mark.parametrize("case", ["clean-mixed-14", "creep-drift-steps-2"])
+def test_a_drift_must_pass_beside_a_creep_that_explains_as_much(case):
+    rec = _mixed_record({}, seed=14) if case == "clean-mixed-14" else _creep_drift_steps(2)
+    d = diagnose(*rec)
+    drift = next(c for c in d.candidates if c.effect == "drift" and c.evidence["round"] == 1
+                 and "beside" not in c.evidence)
+    creep = next(c for c in d.candidates if c.effect == "creep" and c.evidence["round"] == 1)
+    assert drift.evidence["improvement"] >= drift.evidence["threshold"]  # it gains alone
+    assert drift.evidence["drift_trend"]["lower"] > 0  # and trends in the fit part
+    assert creep.rmse_mm <= drift.rmse_mm and creep.evidence["undecided"]
+    beside = drift.evidence["beside_creep"]
+    assert beside["creep_rmse_mm"] == creep.rmse_mm
+    gain_beside = 1 - beside["rmse_mm"] / creep.rmse_mm
+    if case == "clean-mixed-14":
+        assert d.effects_found == [] and gain_beside < 0.1 and not beside["passes"]
+        assert not drift.accepted and "does not show a trend in time" in drift.evidence["text"]
+        assert [c.effect for c in d.undecided()] == ["creep"]
+    else:
+        assert d.effects_found[:1] == ["drift"] and drift.accepted
+        assert gain_beside >= 0.1 and beside["passes"]
 
 
 def test_memory_channels_are_not_for_a_given_model(day1_model):
