@@ -636,6 +636,7 @@ def test_a_drift_found_is_no_saturation_in_the_data():
 # instead of 16-21 (14 of 16 seeds): found on 1 of 16 (13, on 4 holds), 7 of 16 now. Seeds
 # 0-7 were run while writing the fix, 8-15 after it (found on 3 of them); 5 and 13 asserted.
 DRIFT = {"drift": {"gain_loss_per_min": 0.1, "offset_mm_per_min": 0.3}}
+CREEP_12S = {"creep": {"tau_s": 12.0, "gain_mm_per_v": -0.6}}
 
 
 @pytest.mark.parametrize("seed", [5, 13])
@@ -758,17 +759,10 @@ def test_a_creep_is_a_rival_only_of_a_passing_drift_it_explains_as_well():
 # the held-out part better than the drift (0.5327 against 0.5423 mm), but the drift beside it
 # gains 17.5 %, a trend in time, and is kept (docs/diagnose.md, "A drift against a creep in its
 # place"). Seed 11's false drift stays: there the creep gains 2 %.
-def _creep_drift_steps(seed):
-    _, us = random_sine(120.0, RATE, 2.5, (0.05, 1.0), 8, seed=seed + 2)
-    _, st = random_steps(120.0, RATE, 1.5, (3.0, 10.0), seed=seed + 3)
-    u = np.clip(0.6 * us + st, -3, 3)
-    fx = {"creep": {"tau_s": 12.0, "gain_mm_per_v": -0.6}, **DRIFT}
-    return np.arange(u.size) / RATE, u, IpmcPlant(effects=fx, seed=seed, dt_s=1 / RATE).run(u).y_mm
-
-
 @pytest.mark.parametrize("case", ["clean-mixed-14", "creep-drift-steps-2"])
 def test_a_drift_must_pass_beside_a_creep_that_explains_as_much(case):
-    rec = _mixed_record({}, seed=14) if case == "clean-mixed-14" else _creep_drift_steps(2)
+    rec = (_mixed_record({}, seed=14) if case == "clean-mixed-14"
+           else _plant({**CREEP_12S, **DRIFT}, seed=2, seconds=120.0))
     d = diagnose(*rec)
     drift = next(c for c in d.candidates if c.effect == "drift" and c.evidence["round"] == 1
                  and "beside" not in c.evidence)
@@ -786,6 +780,28 @@ def test_a_drift_must_pass_beside_a_creep_that_explains_as_much(case):
     else:
         assert d.effects_found[:1] == ["drift"] and drift.accepted
         assert gain_beside >= 0.1 and beside["passes"]
+
+
+# Creep 12 s, -0.6 mm/V + drift 0.1 /min, 0.3 mm/min, 120 s with holds: both found on 7 of 12
+# seeds, nothing on 0, 1 and 7 before session 30. There the creep is fitted right on the holds
+# and its hold test passes, but the held-out part, moved by the missing drift, gains -27.5 %
+# and -0.3 % (seeds 0, 1); the drift alone is fitted wrong. Seeds 0 and 1 were used to write
+# the pair (docs/diagnose.md, "A creep and a drift that hide each other").
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_creep_and_a_drift_that_hide_each_other_are_found_together(seed):
+    d = diagnose(*_plant({**CREEP_12S, **DRIFT}, seed=seed, seconds=120.0, holds=True))
+    first = [c for c in d.candidates if c.evidence["round"] == 1 and "beside" not in c.evidence]
+    assert not any(c.accepted for c in first)
+    creep = next(c for c in first if c.effect == "creep")
+    assert creep.evidence["hold_drift"]["significant"]
+    assert creep.evidence["improvement"] < creep.evidence["threshold"]  # refused alone
+    assert sorted(d.effects_found) == ["creep", "drift"]
+    acc = {c.effect: c.evidence for c in d.candidates if c.accepted}
+    assert acc["drift"]["beside"] == "creep" and acc["creep"]["beside"] == "drift"
+    assert 6.0 <= acc["creep"]["params"]["tau_s"] <= 18.0
+    assert -0.75 <= acc["creep"]["params"]["gain_mm_per_v"] <= -0.45
+    assert 0.15 <= acc["drift"]["params"]["offset_mm_per_min"] <= 0.45
+    assert d.rmse_after_mm < 0.7 * d.rmse_before_mm
 
 
 def test_memory_channels_are_not_for_a_given_model(day1_model):
