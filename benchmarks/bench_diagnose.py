@@ -7,6 +7,7 @@ third-party data (Bouc-Wen, piezo). Prints figures; not part of the pass/fail su
     .venv/bin/python benchmarks/bench_diagnose.py slowcreep [SEED...]
     .venv/bin/python benchmarks/bench_diagnose.py stale [SEED...] [LABEL_PREFIX...]
     .venv/bin/python benchmarks/bench_diagnose.py combos [SEED...] [LABEL_PREFIX...]
+    .venv/bin/python benchmarks/bench_diagnose.py pairs [SEED...]
 
 ``effects``: every case of :data:`CASES` through the CLI, without ``--model`` (seeds 0, 1, 2
 by default; they were used to design it).
@@ -17,6 +18,9 @@ has a dead zone, a saturation, a drift, an asymmetry or a rate dependence (or no
 changed since, fitted around the model (seeds 0, 1 by default; they were used to design it).
 ``combos``: the same with two changes at once (:data:`COMBO_CHANGES`; seeds 0-3 by default,
 used to design the rules for two changes in sessions 28-29).
+
+``pairs``: as ``effects``, with two effects at once in the plant (:data:`PAIR_CASES`; seeds
+0-3 by default; seeds 0 and 1 were used to design the creep + drift pair in session 30).
 
 ``creepfit``: the creep candidate alone (``diagnose(candidates=("creep",))``, full tuning) on
 ``creep_hold_experiment``'s kind of record (300 s of random 2.5 V steps held 0.5-5 s, 100 Hz),
@@ -105,11 +109,20 @@ CASES = [
 ]
 
 
-def effects(tmp, seeds=(0, 1, 2), only=None):
+# two effects at once, without --model: a creep the holds show and a drift, which each hide the
+# other (session 30)
+PAIR_CASES = [
+    ("holds: creep tau 12 s, -0.6 mm/V + drift 0.1 /min, 0.3 mm/min, 120 s",
+     {"creep": {"tau_s": 12.0, "gain_mm_per_v": -0.6},
+      "drift": {"gain_loss_per_min": 0.1, "offset_mm_per_min": 0.3}}, 120.0, True),
+]
+
+
+def effects(tmp, seeds=(0, 1, 2), only=None, cases=CASES):
     print("| plant effect (not told) | seconds | seed | found | free-run RMSE before (mm) | "
           "after (mm) | wall (s) | fitted | in the data, not accepted | undecided (holds) |")
     print("|---|---|---|---|---|---|---|---|---|---|")
-    for label, eff, seconds, *holds in CASES:
+    for label, eff, seconds, *holds in cases:
         if only and not label.startswith(only):
             continue
         for seed in seeds:
@@ -278,6 +291,8 @@ if __name__ == "__main__":
             args = sys.argv[2:]
             stale(tmp, tuple(int(a) for a in args if a.isdigit()) or (0, 1, 2, 3),
                   only=tuple(a for a in args if not a.isdigit()) or None, changes=COMBO_CHANGES)
+        if what == "pairs":
+            effects(tmp, tuple(int(a) for a in sys.argv[2:]) or (0, 1, 2, 3), cases=PAIR_CASES)
         if what == "creepfit":
             creepfit(tuple(int(a) for a in sys.argv[2:]) or (0, 1, 3))
         if what == "slowcreep":
