@@ -1245,7 +1245,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                                            f"mm against the drift's {drift.rmse_mm:.4f} mm)")
                 say(f"round {rnd}: drift refused: {DRIFT_CREEP_TEXT}")
         passing = [c for c in round_cands if c.passes]
-        if not passing and model is None:
+        if not passing and model is None and max_effects - len(found) >= 2:
             pair = creep_drift_pair(round_cands, rnd, spread)
             if pair is not None:
                 for c in pair:

@@ -802,6 +802,10 @@ def test_a_creep_and_a_drift_that_hide_each_other_are_found_together(seed):
     assert -0.75 <= acc["creep"]["params"]["gain_mm_per_v"] <= -0.45
     assert 0.15 <= acc["drift"]["params"]["offset_mm_per_min"] <= 0.45
     assert d.rmse_after_mm < 0.7 * d.rmse_before_mm
+    if seed == 0:  # the pair adds two effects at once: not where only one may be added
+        one = diagnose(*_plant({**CREEP_12S, **DRIFT}, seed=0, seconds=120.0, holds=True),
+                       max_effects=1)
+        assert one.effects_found == []
 
 
 def test_memory_channels_are_not_for_a_given_model(day1_model):
