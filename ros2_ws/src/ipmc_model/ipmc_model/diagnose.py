@@ -1245,34 +1245,24 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                                            f"mm against the drift's {drift.rmse_mm:.4f} mm)")
                 say(f"round {rnd}: drift refused: {DRIFT_CREEP_TEXT}")
         passing = [c for c in round_cands if c.passes]
+        pair = None
         if not passing and model is None and max_effects - len(found) >= 2:
             pair = creep_drift_pair(round_cands, rnd, spread)
-            if pair is not None:
-                for c in pair:
-                    c.accepted = True
-                    found.append(c.effect)
-                current = pair[1].model
-                ana_cur = analyse(current, u, y, cut)
-                rmse_cur = ana_cur["rmse_free_mm"]
-                remaining = [c for c in remaining if c not in found]
-                say(f"accepted drift and creep together (neither passed alone): held-out "
-                    f"free-run RMSE now {rmse_cur:.4f} mm")
-                continue
-        if not passing and model is not None and not found and max_effects >= 2:
+        elif not passing and model is not None and not found and max_effects >= 2:
             # only before anything is accepted: once a block is in, the others were fitted
             # beside it in the rounds that follow
             pair = look_ahead(round_cands, rnd, remaining)
-            if pair is not None:
-                for c in pair:
-                    c.accepted = True
-                    found.append(c.effect)
-                current = pair[1].model
-                ana_cur = analyse(current, u, y, cut)
-                rmse_cur = ana_cur["rmse_free_mm"]
-                remaining = [c for c in remaining if c not in found]
-                say(f"accepted {pair[0].effect} and {pair[1].effect} together (neither passed "
-                    f"alone): held-out free-run RMSE now {rmse_cur:.4f} mm")
-                continue
+        if pair is not None:
+            for c in pair:
+                c.accepted = True
+                found.append(c.effect)
+            current = pair[1].model
+            ana_cur = analyse(current, u, y, cut)
+            rmse_cur = ana_cur["rmse_free_mm"]
+            remaining = [c for c in remaining if c not in found]
+            say(f"accepted {pair[0].effect} and {pair[1].effect} together (neither passed "
+                f"alone): held-out free-run RMSE now {rmse_cur:.4f} mm")
+            continue
         if not passing and model is not None and len(found) == 1:
             # one accepted block only: with two, the second was fitted around the first and
             # would not follow its refit (stale seed 11, asymmetry 0.8 + drift: after the drift
