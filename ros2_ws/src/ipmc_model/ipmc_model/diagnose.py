@@ -1179,6 +1179,13 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                     best = (old, b, a2)
         return best
 
+    def drift_beside(creep, rnd, spread, how):
+        """The drift fitted beside a round's creep candidate (its model), with all its tests;
+        the Candidate or None (:func:`creep_rival`, ``creep_drift_pair``)."""
+        ana_c = analyse(creep.model, u, y, cut)
+        return evaluate("drift", rnd, creep.model, ana_c, ana_c["rmse_free_mm"], [], spread,
+                        beside="creep", how=how)
+
     def creep_drift_pair(round_cands, rnd, spread):
         """Without a given model, a creep and a drift can each hide the other (creep 12 s,
         -0.6 mm/V + drift 0.1 /min, 0.3 mm/min, 120 s with holds, seeds 0, 1 and 7: the creep
@@ -1196,9 +1203,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
             return None
         say(f"round {rnd}: the holds show a creep that fails its held-out gain: a drift fitted "
             "beside it, then the creep beside the drift")
-        ana_c = analyse(creep.model, u, y, cut)
-        d = evaluate("drift", rnd, creep.model, ana_c, ana_c["rmse_free_mm"], [], spread,
-                     beside="creep", how=CREEP_DRIFT_PAIR_TEXT)
+        d = drift_beside(creep, rnd, spread, CREEP_DRIFT_PAIR_TEXT)
         if d is None or not d.passes:
             return None
         drift_blk = next(e for e in d.model.effects if e.name == "drift")
@@ -1232,9 +1237,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
             # around a given model the creep (a refit) also gains the refit's own gain, so
             # it is no like-for-like rival of a drift (a block around the model) there
             drift, creep = rival
-            ana_c = analyse(creep.model, u, y, cut)
-            beside = evaluate("drift", rnd, creep.model, ana_c, ana_c["rmse_free_mm"], [],
-                              spread, beside="creep", how=CREEP_RIVAL_TEXT)
+            beside = drift_beside(creep, rnd, spread, CREEP_RIVAL_TEXT)
             drift.evidence["beside_creep"] = {
                 "creep_rmse_mm": float(creep.rmse_mm),
                 "rmse_mm": float(beside.rmse_mm) if beside is not None else None,
