@@ -99,7 +99,7 @@ from .effects import (
     save_augmented,
 )
 from .lssvm import LSSVMRegressor
-from .narx import InverseNarxModel, NarxModel
+from .narx import FreeRunCache, InverseNarxModel, NarxModel
 from .persistence import save_model
 from .residuals import (
     acf,
@@ -841,6 +841,15 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
 
     current, ana_cur, rmse_cur = before, ana_before, rmse_before
     floor_mm = noise_floor(y)
+    caches: dict[int, FreeRunCache] = {}
+
+    def runs_of(m: AugmentedModel) -> FreeRunCache:
+        """The free runs of ``m``'s baseline, shared by every block fitted around it as it is
+        (on 30 000 samples with a given model they were 93 % of the time)."""
+        c = caches.get(id(m.baseline))
+        if c is None or c.model is not m.baseline:
+            c = caches[id(m.baseline)] = FreeRunCache(m.baseline)
+        return c
 
     def row_variants(cur, rm_cur):
         """The current model refitted on other evenly spaced rows (80 %, 90 % of the budget):
@@ -877,7 +886,8 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
         for window in ((0, cut // 2), (cut // 2, cut)):
             try:
                 with np.errstate(all="ignore"):
-                    m_h, _ = fit_frozen_effect(name, cur, uf, yf, window=window)
+                    m_h, _ = fit_frozen_effect(name, cur, uf, yf, window=window,
+                                               cache=runs_of(cur))
                     f_h, _ = _held_out(m_h, u, y, cut)
                 r = _rmse(y[cut:], f_h, m_h.max_lag_)
                 g = 1.0 - r / rm_cur if np.isfinite(r) else -1.0
@@ -903,7 +913,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                 if frozen:
                     # a given model is kept as it is: the block is what changed since it
                     # was fitted (a baseline fitted here has absorbed any static map)
-                    m, eff = fit_frozen_effect(name, current, uf, yf)
+                    m, eff = fit_frozen_effect(name, current, uf, yf, cache=runs_of(current))
                 else:
                     m, eff = fit_effect(name, current, narx, uf, yf, screen_narx=screen)
                 free, _ = _held_out(m, u, y, cut)
@@ -1161,7 +1171,8 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                     continue
                 try:
                     with np.errstate(all="ignore"):
-                        m_a, _ = refit_frozen_pair(current, i, c.model.effects[-1], uf, yf)
+                        m_a, _ = refit_frozen_pair(current, i, c.model.effects[-1], uf, yf,
+                                                   cache=runs_of(current))
                 except ValueError:
                     continue
                 ana_a = analyse(m_a, u, y, cut)

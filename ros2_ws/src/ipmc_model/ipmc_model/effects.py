@@ -83,7 +83,7 @@ from scipy.signal import lfilter
 from ipmc_driver.validation import as_signal, same_length
 
 from .errors import ModelFileError
-from .narx import InverseNarxModel, NarxModel
+from .narx import FreeRunCache, InverseNarxModel, NarxModel
 from .persistence import load_model, read_model_document, save_model
 
 EFFECT_NAMES = ("creep", "drift", "delay", "rate_dependence", "asymmetry", "dead_zone",
@@ -456,7 +456,8 @@ class AugmentedModel:
             ya = e.forward(ya, ua, ta, self.dt_s)
         return ya[n0:]
 
-    def simulate(self, u, y_init=None, *, u_past=None, t0_s: float = 0.0) -> np.ndarray:
+    def simulate(self, u, y_init=None, *, u_past=None, t0_s: float = 0.0,
+                 cache: FreeRunCache | None = None) -> np.ndarray:
         """Free-run simulation (mm) from the input ``u`` (N,) (V).
 
         Parameters
@@ -469,7 +470,12 @@ class AugmentedModel:
             Input before ``u`` (V), oldest first: warms the creep state and delay line.
         t0_s : float
             Time of ``u[0]`` since the start of the identification record (drift).
+        cache : FreeRunCache, optional
+            Of this model's baseline: a baseline input run before is looked up, not run again
+            (for fits that score many blocks around one baseline kept as it is).
         """
+        if cache is not None and cache.model is not self.baseline:
+            raise ValueError("cache must be a FreeRunCache of this model's baseline")
         v, _ = self.to_baseline_space(u, u_past=u_past, t0_s=t0_s)
         z_init = None
         L = self.max_lag_
@@ -482,7 +488,7 @@ class AugmentedModel:
             for e in reversed(self._outputs()):
                 za = e.backward(za, ua, ta, self.dt_s)
             z_init = za[n0 : n0 + L]
-        z = self.baseline.simulate(v, z_init)
+        z = (self.baseline if cache is None else cache).simulate(v, z_init)
         return self._from_baseline_space(z, u, u_past, t0_s)
 
     def predict(self, u, y, *, u_past=None, t0_s: float = 0.0) -> np.ndarray:
@@ -1364,7 +1370,8 @@ def _frozen_grid(name: str, u, y, dt_s: float) -> list[float]:
 
 
 def fit_frozen_effect(name: str, model: AugmentedModel, u, y, *,
-                      window: tuple[int, int] | None = None) -> tuple[AugmentedModel, Effect]:
+                      window: tuple[int, int] | None = None,
+                      cache: FreeRunCache | None = None) -> tuple[AugmentedModel, Effect]:
     """Fit the block ``name`` around ``model`` kept as it is (nothing refitted).
 
     For a model fitted on other data (a model given to the diagnosis: yesterday's rig, before
@@ -1393,6 +1400,11 @@ def fit_frozen_effect(name: str, model: AugmentedModel, u, y, *,
     all of ``u`` from its start, so its states and the drift's time are those of the record
     (the diagnosis's split-half check, docs/diagnose.md, session 28).
 
+    ``cache``: a :class:`~ipmc_model.narx.FreeRunCache` of ``model.baseline``, to share between
+    calls around the same model (the full fit and its halves score the same grid); each call
+    makes its own if not given. The static blocks' runs go over the whole of ``u`` through it
+    and are scored on the window, which gives the window's own runs exactly (they are causal).
+
     Returns
     -------
     (AugmentedModel, Effect)
@@ -1415,22 +1427,25 @@ def fit_frozen_effect(name: str, model: AugmentedModel, u, y, *,
                          f"max lag {L})")
     skip = max(start, L)
     grid = _frozen_grid(name, u, y, model.dt_s)  # the whole record's: a window changes no grid
-    u, y = u[:stop], y[:stop]  # the runs are causal: what follows the window changes nothing
+    if cache is None:
+        cache = FreeRunCache(model.baseline)
 
     def free_rmse(m: AugmentedModel) -> float:
-        return _rmse_after(m.simulate(u, y[:L]), y, skip)
+        # the runs are causal: what follows the window changes nothing in it
+        return _rmse_after(m.simulate(u, y[:L], cache=cache)[:stop], y[:stop], skip)
 
-    z = model.simulate(u, y[:L])  # the model's free run, once: drift and rate start from it
-    rmse_model = _rmse_after(z, y, skip)
+    z = model.simulate(u, y[:L], cache=cache)[:stop]  # the model's run: drift and rate use it
+    uw, yw = u[:stop], y[:stop]
+    rmse_model = _rmse_after(z, yw, skip)
     if name == "drift":
         # linear around a fixed model: the backfit's first pass, nothing refitted (without the
         # constant gain as nuisance a stale model passed a drift of +42 % on a dead-zone record)
-        eff = _drift_on_residual(z, y, np.arange(u.size) * model.dt_s / 60.0, skip)
+        eff = _drift_on_residual(z, yw, np.arange(stop) * model.dt_s / 60.0, skip)
         out = AugmentedModel(model.baseline, model.effects + [eff], model.dt_s)
         eff.frozen_ = {"fit_rmse_mm": free_rmse(out), "fit_rmse_before_mm": rmse_model}
         return out, eff
     if name == "rate_dependence":
-        return _fit_frozen_rate(model, u, y, z, rmse_model, skip)
+        return _fit_frozen_rate(model, uw, yw, z, rmse_model, skip)
     # asymmetry has two physical forms, the negative voltage or the negative bending scaled;
     # the one that fits the fit part better is kept (docs/diagnose.md, session 27)
     keys = ((Effect._KEYS[name][0], Effect._OUTPUT_KEYS[name][0]) if name == "asymmetry"
@@ -1472,8 +1487,8 @@ _NEUTRAL = {"dead_zone": lambda v: 0.0, "asymmetry": lambda v: 1.0,
             "saturation": lambda v: 2.0 * v}
 
 
-def refit_frozen_pair(model: AugmentedModel, index: int, other: Effect, u, y
-                      ) -> tuple[AugmentedModel, Effect]:
+def refit_frozen_pair(model: AugmentedModel, index: int, other: Effect, u, y, *,
+                      cache: FreeRunCache | None = None) -> tuple[AugmentedModel, Effect]:
     """Refit the block ``model.effects[index]`` jointly with ``other`` (both one-parameter
     static blocks, :data:`PAIR_REFIT_EFFECTS`), around ``model`` kept as it is otherwise.
 
@@ -1482,6 +1497,8 @@ def refit_frozen_pair(model: AugmentedModel, index: int, other: Effect, u, y
     0.40-0.54 V, and an asymmetry beside it then gained too little to be added. The two
     parameters minimise the free-run RMSE on (u, y) (the fit part) together: Nelder-Mead
     (SciPy) from the two blocks' values, and from the first moved half way to no effect.
+    ``cache``: a :class:`~ipmc_model.narx.FreeRunCache` of ``model.baseline`` (a step that
+    moves only an output block reruns no baseline).
 
     Returns
     -------
@@ -1514,7 +1531,7 @@ def refit_frozen_pair(model: AugmentedModel, index: int, other: Effect, u, y
                     or (name == "saturation" and v <= 0)):
                 return np.inf  # outside the block's physical range
         with np.errstate(all="ignore"):
-            r = _rmse_after(build(a, b).simulate(u, y[:L]), y, L)
+            r = _rmse_after(build(a, b).simulate(u, y[:L], cache=cache), y, L)
         return r if np.isfinite(r) else np.inf
 
     best = None

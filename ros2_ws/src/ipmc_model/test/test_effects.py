@@ -28,7 +28,7 @@ from ipmc_model.effects import (
 )
 from ipmc_model.errors import ModelFileError
 from ipmc_model.lssvm import LSSVMRegressor
-from ipmc_model.narx import InverseNarxModel, NarxModel
+from ipmc_model.narx import FreeRunCache, InverseNarxModel, NarxModel
 
 RATE = 50.0
 
@@ -568,6 +568,51 @@ def test_a_pair_refit_undoes_what_one_block_took_in(record, base):
     assert asym2.params["negative_gain_ratio"] == pytest.approx(0.8, rel=0.05)
     with pytest.raises(ValueError, match="joint refits are for"):
         refit_frozen_pair(alone, 0, Effect("delay", delay_s=0.02), u, y)
+
+
+def test_a_free_run_is_causal_so_a_window_is_scored_on_the_whole_run(record, base):
+    # the frozen fits score a window on the run over the whole fit part (kept in a cache):
+    # that is exact only if no block looks ahead, so the run of a prefix must be the prefix
+    # of the run, to the bit, with every block there is
+    u, y = record
+    fx = [Effect("delay", delay_s=0.1), Effect("dead_zone", width_v=0.2),
+          Effect("asymmetry", negative_gain_ratio=0.8), Effect("creep", tau_s=5.0,
+                                                                gain_mm_per_v=-0.2),
+          Effect("rate_dependence", tau_s=0.2, gain_mm_per_v_per_s=0.05),
+          Effect("asymmetry", negative_bending_ratio=0.9),
+          Effect("drift", gain_loss_per_min=0.1, offset_mm_per_min=0.2),
+          Effect("saturation", limit_mm=3.0)]
+    L = base.max_lag_
+    for effects in ([], fx[:3], fx[3:5], fx[5:]):
+        m = AugmentedModel(base.baseline, effects, base.dt_s)
+        whole = m.simulate(u, y[:L])
+        for stop in (L + 1, u.size // 2, u.size - 1):
+            assert np.array_equal(m.simulate(u[:stop], y[:L]), whole[:stop])
+        cache = FreeRunCache(base.baseline)
+        assert np.array_equal(m.simulate(u, y[:L], cache=cache), whole)
+    with pytest.raises(ValueError, match="this model's baseline"):
+        base.simulate(u, cache=FreeRunCache(_narx().fit(u[:600], y[:600])))
+
+
+@pytest.mark.parametrize("name", ["dead_zone", "asymmetry", "saturation", "drift"])
+def test_frozen_fits_through_one_cache_are_the_fits_without_it(record, base, name):
+    # the diagnosis fits a block on the whole fit part and on each half, around one model,
+    # through one cache: the fits must be those of separate calls, and the halves must find
+    # the grid's runs there
+    u, _ = record
+    truth = AugmentedModel(base.baseline, [Effect("dead_zone", width_v=0.25),
+                                           Effect("saturation", limit_mm=2.5)], base.dt_s)
+    y = truth.simulate(u) + 0.005 * np.random.default_rng(3).standard_normal(u.size)
+    h = u.size // 2
+    cache = FreeRunCache(base.baseline)
+    for window in (None, (0, h), (h, u.size)):
+        _, shared = fit_frozen_effect(name, base, u, y, window=window, cache=cache)
+        _, alone = fit_frozen_effect(name, base, u, y, window=window)
+        assert shared.params == alone.params and shared.frozen_ == alone.frozen_
+        if name in ("saturation", "drift"):  # output blocks: the baseline's input never changes
+            assert cache.misses == 1
+    if name in ("dead_zone", "asymmetry"):
+        assert cache.hits > 40  # the halves' grids (24-25 values each, and per form)
 
 
 def test_frozen_fit_refuses_a_block_the_data_do_not_need(record, base):

@@ -7,7 +7,7 @@ from numpy.testing import assert_allclose
 from ipmc_model.errors import NotFittedError
 from ipmc_model.lssvm import FixedSizeLSSVMRegressor, LSSVMRegressor
 from ipmc_model.metrics import rmse
-from ipmc_model.narx import InverseNarxModel, NarxModel
+from ipmc_model.narx import FreeRunCache, InverseNarxModel, NarxModel
 
 
 @pytest.fixture(scope="module")
@@ -238,3 +238,52 @@ def test_voltage_channel_model_refuses_bad_channels(hyst_data):
                   input_memory_taus_s=(0.3,)).fit(u[:300], y[:300])
     with pytest.raises(ValueError, match="1-D voltage record"):
         m.simulate(np.column_stack([u, u]))
+
+
+def test_free_run_cache_gives_the_model_s_free_run_exactly(hyst_data, fitted):
+    u, y = hyst_data
+    fir = NarxModel(LSSVMRegressor(C=1e3, sigma=3.0), input_lags=12, output_lags=0,
+                    lag_step=2).fit(u[:800], y[:800])
+    uv, yv = u[800:], y[800:]
+    for model, L in ((fir, 24), (fitted, 3)):
+        assert model.max_lag_ == L
+        cache = FreeRunCache(model)
+        first = cache.simulate(uv, yv[:L])
+        assert np.array_equal(first, model.simulate(uv, yv[:L]))
+        assert (cache.hits, cache.misses) == (0, 1)
+        assert np.array_equal(cache.simulate(uv, yv[:L]), first)  # looked up, not run
+        assert (cache.hits, cache.misses) == (1, 1)
+        # other initial outputs: without output lags they are only the first L entries (a
+        # hit); with them they change the run (a miss); either way the model's own run
+        other = yv[:L] + 0.5
+        assert np.array_equal(cache.simulate(uv, other), model.simulate(uv, other))
+        assert np.array_equal(cache.simulate(uv), model.simulate(uv))
+        assert cache.misses == (1 if model.out_delays_.size == 0 else 3)
+        # another input is another run; the returned runs are copies
+        assert np.array_equal(cache.simulate(0.5 * uv), model.simulate(0.5 * uv))
+        first[:] = 0.0
+        assert np.array_equal(cache.simulate(uv, yv[:L]), model.simulate(uv, yv[:L]))
+
+
+def test_free_run_cache_forgets_a_refitted_model_and_keeps_its_byte_budget(hyst_data):
+    u, y = hyst_data
+    model = NarxModel(LSSVMRegressor(C=1e3, sigma=3.0)).fit(u[:600], y[:600])
+    uv = u[800:]
+    with pytest.raises(NotFittedError):
+        FreeRunCache(NarxModel())
+    with pytest.raises(ValueError, match="max_bytes"):
+        FreeRunCache(model, max_bytes=0)
+    cache = FreeRunCache(model, max_bytes=2 * uv.nbytes)  # room for two runs
+    old = cache.simulate(uv)
+    model.fit(u[200:800], y[200:800])  # refitted in place: the kept run is stale
+    new = cache.simulate(uv)
+    assert not np.array_equal(new, old) and np.array_equal(new, model.simulate(uv))
+    assert cache.misses == 2
+    for gain in (0.9, 0.8, 0.7):  # three more runs: the oldest two are dropped
+        cache.simulate(gain * uv)
+    assert cache.misses == 5
+    cache.simulate(0.7 * uv)
+    cache.simulate(0.8 * uv)
+    assert (cache.hits, cache.misses) == (2, 5)
+    cache.simulate(uv)
+    assert cache.misses == 6
