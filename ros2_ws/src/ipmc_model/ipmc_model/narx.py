@@ -346,6 +346,11 @@ class FreeRunCache:
         Fitted; the cache empties itself if the model is refitted.
     max_bytes : int
         Runs kept at most (least recently used dropped first), in bytes of float64.
+
+    Attributes
+    ----------
+    hits, misses : int
+        Calls that found their run, and calls that ran it.
     """
 
     def __init__(self, model: NarxModel, max_bytes: int = 64 * 2**20):
