@@ -846,8 +846,8 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
     def runs_of(m: AugmentedModel) -> FreeRunCache:
         """The free runs of ``m``'s baseline, shared by every block fitted around it as it is
         (on 30 000 samples with a given model they were 93 % of the time)."""
-        c = caches.get(id(m.baseline))
-        if c is None or c.model is not m.baseline:
+        c = caches.get(id(m.baseline))  # a cache holds its baseline: the id stays its own
+        if c is None:
             c = caches[id(m.baseline)] = FreeRunCache(m.baseline)
         return c
 

@@ -273,19 +273,20 @@ class NarxModel:
             Simulated output; entries ``[:max_lag_]`` are ``y_init``. If the simulation
             diverges (|standardised output| > 1e6) the rest is NaN.
         """
-        check_fitted(self, "regressor_")
-        us = self.input_channels(u, "u", min_length=self.max_lag_ + 1)
-        self._check_inputs(us)
-        return self._unscale_y(self._free_run(us, self._initial_outputs(y_init)))
+        return self._unscale_y(self._free_run(*self._run_inputs(u, y_init)))
 
-    def _initial_outputs(self, y_init) -> np.ndarray:
+    def _run_inputs(self, u, y_init) -> tuple[np.ndarray, np.ndarray]:
+        """A free run's checked input channels and initial outputs (mm)."""
+        check_fitted(self, "regressor_")
         L = self.max_lag_
+        us = self.input_channels(u, "u", min_length=L + 1)
+        self._check_inputs(us)
         if y_init is None:
-            return np.zeros(L)
+            return us, np.zeros(L)
         y0 = np.atleast_1d(np.asarray(y_init, dtype=float))
         if y0.shape != (L,) or not np.all(np.isfinite(y0)):
             raise ValueError(f"y_init must be {L} finite values (max lag), got {y0.shape}")
-        return y0
+        return us, y0
 
     def _free_run(self, us: np.ndarray, y0: np.ndarray) -> np.ndarray:
         """The free run in standardised units from input channels ``us`` and initial outputs
@@ -368,19 +369,16 @@ class FreeRunCache:
     def simulate(self, u, y_init=None) -> np.ndarray:
         """:meth:`NarxModel.simulate` of the cache's model (mm), looked up if run before."""
         m = self.model
-        check_fitted(m, "regressor_")
+        us, y0 = m._run_inputs(u, y_init)
+        us = np.ascontiguousarray(us)
         if m.regressor_ is not self._regressor:  # refitted since: every run is stale
             self._runs.clear()
             self._bytes = 0
             self._regressor = m.regressor_
-        L = m.max_lag_
-        us = np.ascontiguousarray(m.input_channels(u, "u", min_length=L + 1))
-        m._check_inputs(us)
-        y0 = m._initial_outputs(y_init)
         recurrent = m.out_delays_.size > 0
         h = hashlib.blake2b(us.view(np.uint8), digest_size=16)
         if recurrent:
-            h.update(y0.view(np.uint8))
+            h.update(y0.tobytes())
         key = (us.shape, h.digest())
         z = self._runs.get(key)
         if z is None:
@@ -394,7 +392,7 @@ class FreeRunCache:
             self.hits += 1
             self._runs.move_to_end(key)
         z = z.copy()
-        z[:L] = m._scale_y(y0)
+        z[: m.max_lag_] = m._scale_y(y0)
         return m._unscale_y(z)
 
 

@@ -253,9 +253,10 @@ def test_free_run_cache_gives_the_model_s_free_run_exactly(hyst_data, fitted):
         assert (cache.hits, cache.misses) == (0, 1)
         assert np.array_equal(cache.simulate(uv, yv[:L]), first)  # looked up, not run
         assert (cache.hits, cache.misses) == (1, 1)
-        # other initial outputs: without output lags they are only the first L entries (a
-        # hit); with them they change the run (a miss); either way the model's own run
-        other = yv[:L] + 0.5
+        # other initial outputs (a strided view, as a slice may be): without output lags they
+        # are only the first L entries (a hit); with them they change the run (a miss);
+        # either way the model's own run
+        other = (yv[: 2 * L] + 0.5)[::2]
         assert np.array_equal(cache.simulate(uv, other), model.simulate(uv, other))
         assert np.array_equal(cache.simulate(uv), model.simulate(uv))
         assert cache.misses == (1 if model.out_delays_.size == 0 else 3)
