@@ -105,6 +105,10 @@ class _KernelExpansion:
         self.intercept_ = float(intercept)
         self._gamma = 1.0 / (2.0 * self.sigma_ * self.sigma_)
         self._center_sq = (self.centers_ * self.centers_).sum(1)
+        # predict_one's exponent 2 g c.x - g |c|^2 - g |x|^2, the product Fortran-ordered: a
+        # 1500 x 13 kernel row in 5.5 us instead of 8 (every free run; docs/models.md)
+        self._row_a = np.asfortranarray(2.0 * self._gamma * self.centers_)
+        self._row_c = -self._gamma * self._center_sq
 
     def predict(self, X, chunk_size: int = 8192) -> np.ndarray:
         """Regression output for rows of ``X`` (n, d) -> (n,)."""
@@ -122,8 +126,11 @@ class _KernelExpansion:
 
     def predict_one(self, x: np.ndarray) -> float:
         """Output for one row ``x`` (d,): one kernel row, no validation (hot path)."""
-        d2 = self._center_sq - 2.0 * (self.centers_ @ x) + x @ x
-        return float(np.exp(-self._gamma * d2) @ self.coef_) + self.intercept_
+        t = self._row_a @ x
+        t += self._row_c
+        t -= self._gamma * (x @ x)
+        np.exp(t, out=t)
+        return float(t @ self.coef_) + self.intercept_
 
     @property
     def n_centers_(self) -> int:
