@@ -284,7 +284,7 @@ class ForwardInversionStepper:
             self._PTc = np.ascontiguousarray(
                 np.vstack((PT * reg.coef_, np.abs(reg.coef_))))
             self._exponent = np.ascontiguousarray(np.column_stack(
-                (2.0 * g * reg.centers_, -g * reg._center_sq, np.ones(D.size))))
+                (reg._row_a, reg._row_c, np.ones(D.size))))  # predict_one's terms
             self._z_aug = np.zeros(self._exponent.shape[1])
             self._z_aug[-2] = 1.0
             x_max = 2.0 * g * U * float(np.abs(D).max())

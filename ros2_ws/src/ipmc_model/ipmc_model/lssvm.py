@@ -106,7 +106,7 @@ class _KernelExpansion:
         self._gamma = 1.0 / (2.0 * self.sigma_ * self.sigma_)
         self._center_sq = (self.centers_ * self.centers_).sum(1)
         # predict_one's exponent 2 g c.x - g |c|^2 - g |x|^2, the product Fortran-ordered: a
-        # 1500 x 13 kernel row in 5.5 us instead of 8 (every free run; docs/models.md)
+        # 1500 x 13 kernel row in 5.7 us instead of 8.0 (every free run; docs/models.md)
         self._row_a = np.asfortranarray(2.0 * self._gamma * self.centers_)
         self._row_c = -self._gamma * self._center_sq
 
