@@ -8,6 +8,7 @@ third-party data (Bouc-Wen, piezo). Prints figures; not part of the pass/fail su
     .venv/bin/python benchmarks/bench_diagnose.py stale [SEED...] [LABEL_PREFIX...]
     .venv/bin/python benchmarks/bench_diagnose.py combos [SEED...] [LABEL_PREFIX...]
     .venv/bin/python benchmarks/bench_diagnose.py pairs [SEED...]
+    .venv/bin/python benchmarks/bench_diagnose.py baseline [SEED...]
 
 ``effects``: every case of :data:`CASES` through the CLI, without ``--model`` (seeds 0, 1, 2
 by default; they were used to design it).
@@ -21,6 +22,13 @@ used to design the rules for two changes in sessions 28-29).
 
 ``pairs``: as ``effects``, with two effects at once in the plant (:data:`PAIR_CASES`; seeds
 0-3 by default; seeds 0 and 1 were used to design the creep + drift pair in session 30).
+
+``baseline``: the diagnosis's own baseline on clean records (3 V ``mixed``, 120 s; the
+``effects`` input, 90 s), held-out free-run RMSE as tuned, at the tuning grid's best on the
+held-out part (the most any choice from the grid could give), with a 2.4 s window (24 input
+lags), and with memory channels (1, 3, 10 s); and the share of its squared error on samples
+whose displacement leaves the fit part's range (seeds 0-11 by default). Its error is what a
+block fitted around it must not mistake for an effect (docs/diagnose.md, session 32).
 
 ``creepfit``: the creep candidate alone (``diagnose(candidates=("creep",))``, full tuning) on
 ``creep_hold_experiment``'s kind of record (300 s of random 2.5 V steps held 0.5-5 s, 100 Hz),
@@ -265,6 +273,68 @@ def stale(tmp, seeds=(0, 1), amplitude=3.0, only=None, changes=STALE_CHANGES):
                   f"{s.get('rmse_after_mm', 0):.4f} | {sec:.0f} s |", flush=True)
 
 
+#: Baseline variants of ``baseline``: label -> keyword arguments of ``diagnose``.
+BASELINE_VARIANTS = (
+    ("tuned", {}),
+    ("24 lags", {"input_lags": 24}),
+    ("memory 1, 3, 10 s", {"memory_taus_s": (1.0, 3.0, 10.0)}),
+)
+
+
+def _baseline_row(t, u, y):
+    """Held-out free-run RMSE (mm) of each baseline variant, of their runs' mean and of the
+    tuning grid's best, over the same samples; the grid's best (C, sigma); the share of the
+    held-out samples beyond the fit part's displacement range, and of the tuned one's squared
+    error on them."""
+    from ipmc_model.diagnose import TUNING_GRID_C, TUNING_GRID_SIGMA, _held_out, diagnose
+
+    def held(**kw):
+        d = diagnose(t, u, y, candidates=(), **kw)
+        return d.cut, _held_out(d.model_before, u, y, d.cut)[0], d.model_before.max_lag_
+
+    runs = [held(**kw) for _, kw in BASELINE_VARIANTS]
+    grid = {(c, s): held(C=c, sigma=s) for c in TUNING_GRID_C for s in TUNING_GRID_SIGMA}
+    cut = runs[0][0]
+    lag = max(x[2] for x in runs + list(grid.values()))
+    yh = y[cut:][lag:]
+    scores = {g: float(np.sqrt(np.mean((yh - v[1][lag:]) ** 2))) for g, v in grid.items()}
+    best = min(scores, key=scores.get)
+    frees = [x[1][lag:] for x in runs] + [np.mean([x[1][lag:] for x in runs], axis=0)]
+    res = [float(np.sqrt(np.mean((yh - f) ** 2))) for f in frees] + [scores[best]]
+    e = yh - frees[0]
+    out = (yh < y[:cut].min()) | (yh > y[:cut].max())
+    return res, best, 100 * out.mean(), 100 * np.sum(e[out] ** 2) / np.sum(e ** 2)
+
+
+def baseline(seeds=tuple(range(12))):
+    """The diagnosis's baseline alone (no candidate) on clean records: where its held-out
+    error comes from (tuning, window, range), and what the mean of the variants' free runs
+    gives. Every RMSE is over the same held-out samples (after the longest variant's lags)."""
+    from ipmc_driver.signals import mixed
+
+    labels = [v[0] for v in BASELINE_VARIANTS]
+    print("clean plant, 50 Hz; held-out free-run RMSE (mm) of the baseline alone")
+    print(f"| record | seed | {' | '.join(labels)} | mean of the {len(labels)} runs | grid's best "
+          "(C, sigma) | beyond the fit range: samples, squared error |")
+    print("|---|---|" + "---|" * (len(labels) + 3))
+    totals = np.zeros(len(labels) + 2)
+    for kind in ("mixed 3 V, 120 s", "effects input, 90 s"):
+        for seed in seeds:
+            if kind.startswith("mixed"):
+                _, u = mixed(120.0, RATE, 3.0, band_hz=(0.02, 0.8), seed=seed)
+                r = IpmcPlant(seed=seed, dt_s=1 / RATE).run(u)
+                t, u, y = r.t_s, r.u_v, r.y_mm
+            else:
+                rec = plant_record({}, 90.0, seed)
+                t, u, y = rec.t_s, rec.u_v, rec.y_mm
+            res, best, share, err_share = _baseline_row(t, u, y)
+            totals += res
+            print(f"| {kind} | {seed} | {' | '.join(f'{x:.4f}' for x in res[:-1])} | "
+                  f"{res[-1]:.4f} ({best[0]:g}, {best[1]:g}) | {share:.1f} %, "
+                  f"{err_share:.1f} % |", flush=True)
+    print(f"| sum | | {' | '.join(f'{x:.4f}' for x in totals)} | |")
+
+
 def _convert(src, dst, cols, scale_y, rate=None):
     rows = list(csv.reader(open(src)))[1:]
     a = np.array([[float(r[c]) for c in cols] for r in rows])
@@ -312,6 +382,8 @@ if __name__ == "__main__":
                   only=tuple(a for a in args if not a.isdigit()) or None, changes=COMBO_CHANGES)
         if what == "pairs":
             effects(tmp, tuple(int(a) for a in sys.argv[2:]) or (0, 1, 2, 3), cases=PAIR_CASES)
+        if what == "baseline":
+            baseline(tuple(int(a) for a in sys.argv[2:]) or tuple(range(12)))
         if what == "creepfit":
             creepfit(tuple(int(a) for a in sys.argv[2:]) or (0, 1, 3))
         if what == "slowcreep":
