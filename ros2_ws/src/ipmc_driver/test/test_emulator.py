@@ -138,11 +138,13 @@ def test_laser_reading_compensates_back_to_plant_displacement(rig):
 def test_frame_faults_counted_by_decoder(rig, fault, stat, expected):
     emu, port, _ = rig
     dec = FrameDecoder()
-    read_for(port, dec, 0.1)
+    before = samples_of(read_for(port, dec, 0.2))
+    assert before, "no sample before the fault"
     emu.inject(fault)
     msgs = samples_of(read_for(port, dec, 0.3))
     assert getattr(dec.stats, stat) == expected
-    counters = [s.counter for s in msgs]
+    # from the last sample before the fault: the damaged frames may be the first ones after it
+    counters = [before[-1].counter] + [s.counter for s in msgs]
     gaps = [b - a - 1 for a, b in zip(counters, counters[1:], strict=False) if b - a != 1]
     assert gaps == [expected]  # the damaged frames are missing, nothing else
 
