@@ -6,9 +6,11 @@ sentence naming the file and what is wrong (missing, not JSON, not an ipmc-ros m
 format version, arrays missing or not matching the JSON's checksum).
 
 Format versions: 1, every model; 2 adds a forward ``lssvm-narx`` model's voltage channels
-(``model.params``: ``input_memory_taus_s``, ``include_voltage``, ``dt_s``). A file is written
-with the lowest version that holds it (a model without voltage channels is still version 1,
-readable by an older ipmc_model); version-1 files load as before.
+(``model.params``: ``input_memory_taus_s``, ``include_voltage``, ``dt_s``); 3 adds the kind
+``lssvm-narx-committee`` (``model.members``: one ``lssvm-narx`` body each, their arrays named
+``m<i>_centers``, ``m<i>_coef``). A file is written with the lowest version that holds it (a
+model without voltage channels is still version 1, readable by an older ipmc_model);
+version-1 files load as before.
 """
 
 from __future__ import annotations
@@ -23,14 +25,14 @@ import numpy as np
 
 from .errors import ModelFileError, NotFittedError
 from .lssvm import FixedSizeLSSVMRegressor, LSSVMRegressor
-from .narx import InverseNarxModel, NarxModel
+from .narx import InverseNarxModel, NarxCommittee, NarxModel
 from .play import PrandtlIshlinskii
 
 FORMAT = "ipmc-ros-model"
-FORMAT_VERSION = 2  # the newest this module reads and writes
+FORMAT_VERSION = 3  # the newest this module reads and writes
 #: NarxModel parameters that exist only since format version 2 (voltage channels).
 CHANNEL_PARAMS = ("input_memory_taus_s", "include_voltage", "dt_s")
-KINDS = ("pi", "lssvm-narx", "lssvm-narx-inverse")
+KINDS = ("pi", "lssvm-narx", "lssvm-narx-inverse", "lssvm-narx-committee")
 
 
 def _arrays_path(path: Path) -> Path:
@@ -71,7 +73,7 @@ def save_model(model, path, *, metadata: dict | None = None) -> Path:
 
     Parameters
     ----------
-    model : PrandtlIshlinskii, NarxModel or InverseNarxModel (fitted)
+    model : PrandtlIshlinskii, NarxModel, NarxCommittee or InverseNarxModel (fitted)
     path : str or os.PathLike
     metadata : dict, optional
         JSON-serialisable notes stored under ``"metadata"`` (data file, tuning result, units).
@@ -101,9 +103,19 @@ def save_model(model, path, *, metadata: dict | None = None) -> Path:
             raise NotFittedError("this NarxModel is not fitted yet; nothing to save")
         kind = "lssvm-narx"
         body, arrays = _narx_doc(model)
+    elif isinstance(model, NarxCommittee):
+        if model.regressor_ is None:
+            raise NotFittedError("this NarxCommittee is not fitted yet; nothing to save")
+        kind = "lssvm-narx-committee"
+        body, arrays = {"members": []}, {}
+        for i, m in enumerate(model.members):
+            b, a = _narx_doc(m)
+            body["members"].append(b)
+            arrays.update({f"m{i}_{k}": v for k, v in a.items()})
     else:
         raise ValueError(f"cannot save an object of type {type(model).__name__}")
-    version = 2 if isinstance(model, NarxModel) and model.uses_voltage_channels else 1
+    version = (3 if isinstance(model, NarxCommittee)
+               else 2 if isinstance(model, NarxModel) and model.uses_voltage_channels else 1)
     buf = io.BytesIO()
     np.savez(buf, **{k: np.asarray(v, dtype=float) for k, v in arrays.items()})
     blob = buf.getvalue()
@@ -166,7 +178,7 @@ def load_model(path):
 
     Returns
     -------
-    PrandtlIshlinskii, NarxModel or InverseNarxModel
+    PrandtlIshlinskii, NarxModel, NarxCommittee or InverseNarxModel
         Fitted, ready for ``predict`` / ``simulate`` / ``stepper``. The document's
         ``metadata`` is attached as ``model.metadata_``.
 
@@ -239,6 +251,14 @@ def _build(kind: str, body: dict, arrays: dict):
         return m
     if kind == "lssvm-narx":
         return _build_narx(body, arrays, body["params"])
+    if kind == "lssvm-narx-committee":
+        members = [_build_narx(b, {k: arrays[f"m{i}_{k}"] for k in ("centers", "coef")},
+                               b["params"]) for i, b in enumerate(body["members"])]
+        c = NarxCommittee(members)
+        c._check_members()
+        if len({m.n_inputs_ for m in members}) != 1:
+            raise ValueError("the members' input channels differ")
+        return c._set_fitted()
     p = body["params"]
     inv = InverseNarxModel(**p)
     inv.narx_ = _build_narx(body, arrays, {"input_lags": p["output_lags"],

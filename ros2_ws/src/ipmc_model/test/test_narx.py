@@ -7,7 +7,7 @@ from numpy.testing import assert_allclose
 from ipmc_model.errors import NotFittedError
 from ipmc_model.lssvm import FixedSizeLSSVMRegressor, LSSVMRegressor
 from ipmc_model.metrics import rmse
-from ipmc_model.narx import FreeRunCache, InverseNarxModel, NarxModel
+from ipmc_model.narx import FreeRunCache, InverseNarxModel, NarxCommittee, NarxModel
 
 
 @pytest.fixture(scope="module")
@@ -288,3 +288,49 @@ def test_free_run_cache_forgets_a_refitted_model_and_keeps_its_byte_budget(hyst_
     assert (cache.hits, cache.misses) == (2, 5)
     cache.simulate(uv)
     assert cache.misses == 6
+
+
+def test_committee_is_the_mean_of_its_members(hyst_data):
+    u, y = hyst_data
+    u2 = np.column_stack([u, np.sin(np.arange(u.size) / 50.0)])  # an extra channel, as blocks add
+
+    def members():
+        return [NarxModel(LSSVMRegressor(C=1e3, sigma=3.0), input_lags=k, output_lags=n,
+                          lag_step=2, max_rows=400) for k, n in ((4, 0), (8, 0), (6, 2))]
+
+    alone = [m.fit(u2[:800], y[:800]) for m in members()]
+    c = NarxCommittee(members()).fit(u2[:800], y[:800])
+    L = c.max_lag_
+    assert L == 16 and c.out_delays_.tolist() == [1, 3]
+    uv, yv = u2[800:], y[800:]
+    # free run: the members' mean after the longest window; its first L outputs are y_init
+    free = c.simulate(uv, yv[:L])
+    want = np.mean([m.simulate(uv, yv[: m.max_lag_]) for m in alone], axis=0)
+    assert_allclose(free[L:], want[L:], rtol=1e-12, atol=1e-12)
+    assert np.array_equal(free[:L], yv[:L])
+    assert rmse(yv[L:], free[L:]) < 0.5 * np.std(yv)
+    one = c.predict(uv, yv)
+    assert_allclose(one[L:], np.mean([m.predict(uv, yv) for m in alone], axis=0)[L:],
+                    rtol=1e-12, atol=1e-12)
+    # step by step: with the measurements fed back, the one-step prediction
+    st = c.stepper()
+    steps = []
+    for uk, yk in zip(uv[:300], yv[:300], strict=True):
+        steps.append(st.step(uk))
+        st.correct_output(yk)
+    assert_allclose(steps[L:], one[L:300], rtol=1e-9, atol=1e-12)
+    # and free from rest (members without output lags), the free run from rest
+    fir = NarxCommittee(alone[:2])._set_fitted()
+    st = fir.stepper()
+    assert_allclose([st.step(x) for x in uv[:300]][L:], fir.simulate(uv[:300])[L:],
+                    rtol=1e-9, atol=1e-12)
+    # the cache runs the committee as it is
+    cache = FreeRunCache(c)
+    assert np.array_equal(cache.simulate(uv, yv[:L]), free)
+    assert np.array_equal(cache.simulate(uv, yv[:L]), free) and cache.hits == 1
+    with pytest.raises(ValueError, match="at least 2 members"):
+        NarxCommittee(members()[:1]).fit(u2, y)
+    with pytest.raises(ValueError, match="voltage channels"):
+        NarxCommittee([members()[0], NarxModel(input_memory_taus_s=(1.0,))]).fit(u, y)
+    with pytest.raises(NotFittedError):
+        NarxCommittee(members()).simulate(uv)

@@ -5,7 +5,7 @@ from numpy.testing import assert_allclose
 
 from ipmc_model.errors import ModelFileError, NotFittedError
 from ipmc_model.lssvm import FixedSizeLSSVMRegressor, LSSVMRegressor
-from ipmc_model.narx import InverseNarxModel, NarxModel
+from ipmc_model.narx import InverseNarxModel, NarxCommittee, NarxModel
 from ipmc_model.persistence import FORMAT_VERSION, load_model, save_model
 from ipmc_model.play import PrandtlIshlinskii
 
@@ -164,4 +164,29 @@ def test_voltage_channel_file_with_wrong_channels_is_corrupt(tmp_path, channel_m
     doc["format_version"] = FORMAT_VERSION + 1
     path.write_text(json.dumps(doc))
     with pytest.raises(ModelFileError, match="newer than this ipmc_model supports"):
+        load_model(path)
+
+
+def test_committee_round_trip_is_a_version_3_file(tmp_path, hyst_data):
+    u, y = hyst_data
+    members = [NarxModel(LSSVMRegressor(C=100.0, sigma=2.0), input_lags=k, output_lags=0,
+                         lag_step=2) for k in (3, 5)]
+    model = NarxCommittee(members).fit(u[:500], y[:500])
+    path = save_model(model, tmp_path / "committee")
+    doc = json.loads(path.read_text())
+    assert doc["format_version"] == 3 and doc["kind"] == "lssvm-narx-committee"
+    loaded = load_model(path)
+    assert type(loaded) is NarxCommittee and loaded.max_lag_ == model.max_lag_ == 10
+    assert_allclose(loaded.simulate(u[500:600]), model.simulate(u[500:600]))
+    st = loaded.stepper()
+    assert_allclose([st.step(v) for v in u[500:600]][10:], model.simulate(u[500:600])[10:],
+                    rtol=1e-9, atol=1e-12)
+    # a member whose regressor does not match its lags is a corrupt file, not a crash
+    doc["model"]["members"][1]["input_lags_"] = [3]
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ModelFileError, match="corrupt model content.*lags"):
+        load_model(path)
+    doc["model"]["members"] = doc["model"]["members"][:1]
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ModelFileError, match="corrupt model content.*at least 2 members"):
         load_model(path)
