@@ -370,3 +370,32 @@ def test_explicit_forward_inversion_of_a_plain_forward_model_is_refused(
     finally:
         probe.node.destroy_node()
     assert processes.stop("model_server") < GRACE_S
+
+
+def test_a_committee_is_served_as_a_forward_model(tmp_path):
+    """A diagnosis's committee baseline (model_before.json of ``ipmc diagnose --committee``) is
+    a forward model for the live prediction and residual; it has no voltage channels, so it
+    cannot be inverted for feedforward."""
+    from ipmc_model.lssvm import LSSVMRegressor
+    from ipmc_model.narx import NarxCommittee, NarxModel
+    from ipmc_model.nodes.model_server import (
+        ModelSetError,
+        _describe,
+        choose_feedforward,
+        load_model_set,
+    )
+    from ipmc_model.persistence import save_model
+
+    _, u = random_sine(20.0, 100.0, amplitude=2.5, seed=2)
+    run = IpmcPlant(seed=2).run(u)
+    c = NarxCommittee([NarxModel(LSSVMRegressor(C=1e3, sigma=3.0), input_lags=k, output_lags=0,
+                                 lag_step=5, max_rows=300) for k in (4, 8)])
+    path = save_model(c.fit(run.u_v, run.y_mm), tmp_path / "committee.json")
+    forward, inverse = load_model_set(str(path))
+    assert isinstance(forward, NarxCommittee) and inverse is None
+    assert _describe(forward) == "lssvm-narx-committee (2 models, 600 centres, max lag 40)"
+    st = forward.stepper(run.u_v[:100], run.y_mm[:100])
+    assert abs(st.step(run.u_v[100]) - run.y_mm[100]) < 0.5
+    assert choose_feedforward("auto", forward, None) == "none"
+    with pytest.raises(ModelSetError, match="needs a forward model with voltage channels"):
+        choose_feedforward("forward-inversion", forward, None)

@@ -99,7 +99,7 @@ from .effects import (
     save_augmented,
 )
 from .lssvm import LSSVMRegressor
-from .narx import FreeRunCache, InverseNarxModel, NarxModel
+from .narx import FreeRunCache, InverseNarxModel, NarxCommittee, NarxModel
 from .persistence import save_model
 from .residuals import (
     acf,
@@ -131,6 +131,9 @@ BASELINE_INPUT_LAGS = 12
 # (delay and dead zone bring refit-free evidence instead, _refit_free_test.)
 BARE_SIGNATURE = ("asymmetry", "saturation")
 BASELINE_OUTPUT_LAGS = 0
+#: Windows of a committee baseline (``diagnose(committee=True)``, ``--committee``), in
+#: multiples of the baseline's input lags: 12, 18 and 24 lags (1.2, 1.8, 2.4 s on the plant).
+COMMITTEE_WINDOWS = (1.0, 1.5, 2.0)
 #: Row budgets (shares of ``max_rows``) of the paired refits: an effect whose fit refits the
 #: NARX must gain ``threshold`` with each of them too, against the current model refitted on
 #: the same rows.
@@ -588,8 +591,9 @@ def _rate_control_test(current: AugmentedModel, narx: NarxModel, eff, u, y, cut:
     # second window, which is a bigger model and no control
     # diagnose's template gives every channel it has its lags: a scalar for the voltage alone
     nx = copy.deepcopy(narx)
-    lags = nx.input_lags
-    nx.input_lags = ((lags,) if np.isscalar(lags) else tuple(lags)) + (1,)
+    for one in (nx.members if isinstance(nx, NarxCommittee) else [nx]):
+        lags = one.input_lags
+        one.input_lags = ((lags,) if np.isscalar(lags) else tuple(lags)) + (1,)
     try:
         with np.errstate(all="ignore"):
             ctrl = current.refit(nx, u[:cut], y[:cut],
@@ -721,12 +725,16 @@ def analyse(model: AugmentedModel, u, y, cut: int, max_lag: int = 25) -> dict:
     return out
 
 
-def _template(model: AugmentedModel, max_rows: int) -> NarxModel:
+def _template(model: AugmentedModel, max_rows: int) -> NarxModel | NarxCommittee:
+    """An unfitted copy of the model's baseline structure (a committee: of every member)."""
+    def one(b: NarxModel) -> NarxModel:
+        reg = b.regressor_
+        return NarxModel(LSSVMRegressor(C=reg.C_, sigma=reg.sigma_), input_lags=b.input_lags,
+                         output_lags=b.output_lags, lag_step=b.lag_step,
+                         standardize=b.standardize, max_rows=max_rows)
+
     b = model.baseline
-    reg = b.regressor_
-    return NarxModel(LSSVMRegressor(C=reg.C_, sigma=reg.sigma_), input_lags=b.input_lags,
-                     output_lags=b.output_lags, lag_step=b.lag_step,
-                     standardize=b.standardize, max_rows=max_rows)
+    return NarxCommittee([one(m) for m in b.members]) if isinstance(b, NarxCommittee) else one(b)
 
 
 def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int = 0,
@@ -735,7 +743,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
              screen_rows: int = 600, C: float | None = None, sigma: float | None = None,
              lag_step: int | None = None, input_lags: int = BASELINE_INPUT_LAGS,
              output_lags: int = BASELINE_OUTPUT_LAGS, memory_taus_s=(),
-             progress=None) -> Diagnosis:
+             committee: bool = False, progress=None) -> Diagnosis:
     """Diagnose the model of a record and augment it with the physical effects it lacks.
 
     Parameters
@@ -768,6 +776,12 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
         voltage (after any input effect) low-passed, each one more input channel with one
         lag. They carry the back-relaxation beyond the 1.2 s lag window (docs/diagnose.md,
         "Memory channels"). Default none. Not with ``model``.
+    committee : bool
+        Identify the baseline as a :class:`~ipmc_model.narx.NarxCommittee`: the mean of
+        LSSVM-NARX with ``input_lags`` times :data:`COMMITTEE_WINDOWS` lags, each tuned on its
+        own. It has less error on new input (docs/diagnose.md, session 32) and costs about
+        three times as much. Not with ``model`` (a given model keeps its structure) or
+        ``memory_taus_s``.
     progress : callable, optional
         ``progress(message: str)`` for progress lines (the CLI prints them to stderr).
     """
@@ -787,6 +801,9 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
     if memory_taus_s and model is not None:
         raise ValueError("memory channels are for the baseline identified here; a given model "
                          "keeps its own structure")
+    if committee and (model is not None or memory_taus_s):
+        raise ValueError("a committee baseline is identified here, without memory channels; "
+                         "a given model keeps its own structure")
     blocks = [Effect("memory", tau_s=x) for x in memory_taus_s]
     if blocks:
         # one lag per memory channel: a slow channel needs no window of its own, and 12 lags
@@ -800,37 +817,53 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
     tuning: dict = {}
     if model is None:
         step = choose_lag_step(uf, rate) if lag_step is None else int(lag_step)
-        if C is None or sigma is None:
-            mem = (f", memory channels {', '.join(f'{x:g}' for x in memory_taus_s)} s"
-                   if memory_taus_s else "")
-            say(f"tuning the baseline LSSVM-NARX ({input_lags} input lags, {output_lags} "
-                f"output lags, lag step {step}{mem}) on a {len(TUNING_GRID_C)} x "
-                f"{len(TUNING_GRID_SIGMA)} grid of C, sigma (free-run RMSE on the last "
-                "quarter of the fit part)")
-            tc = time.perf_counter()
-            C, sigma, score, nfev = _tune_grid(uf, yf, step, input_lags, output_lags,
-                                               min(800, max_rows), blocks, dt)
-            tuning = {"C": C, "sigma": sigma, "lag_step": step, "objective": "free_run",
-                      "validation_rmse_mm": score, "nfev": nfev,
-                      "seconds": time.perf_counter() - tc}
+
+        def tuned(lags) -> tuple[NarxModel, dict]:
+            if C is None or sigma is None:
+                mem = (f", memory channels {', '.join(f'{x:g}' for x in memory_taus_s)} s"
+                       if memory_taus_s else "")
+                say(f"tuning the baseline LSSVM-NARX ({lags} input lags, {output_lags} "
+                    f"output lags, lag step {step}{mem}) on a {len(TUNING_GRID_C)} x "
+                    f"{len(TUNING_GRID_SIGMA)} grid of C, sigma (free-run RMSE on the last "
+                    "quarter of the fit part)")
+                tc = time.perf_counter()
+                c, sg, score, nfev = _tune_grid(uf, yf, step, lags, output_lags,
+                                                min(800, max_rows), blocks, dt)
+                tun = {"C": c, "sigma": sg, "lag_step": step, "objective": "free_run",
+                       "validation_rmse_mm": score, "nfev": nfev,
+                       "seconds": time.perf_counter() - tc}
+            else:
+                c, sg = float(C), float(sigma)
+                tun = {"C": c, "sigma": sg, "lag_step": step, "objective": "given"}
+            return NarxModel(LSSVMRegressor(C=c, sigma=sg), input_lags=lags,
+                             output_lags=output_lags, lag_step=step, max_rows=max_rows), tun
+
+        if committee:
+            fits = [tuned(int(round(k * int(input_lags)))) for k in COMMITTEE_WINDOWS]
+            narx = NarxCommittee([f[0] for f in fits])
+            tuning = dict(fits[0][1], committee=[
+                dict(f[1], input_lags=f[0].input_lags) for f in fits])
         else:
-            tuning = {"C": float(C), "sigma": float(sigma), "lag_step": step,
-                      "objective": "given"}
+            narx, tuning = tuned(input_lags)
         if memory_taus_s:
             tuning["memory_taus_s"] = list(memory_taus_s)
-        narx = NarxModel(LSSVMRegressor(C=C, sigma=sigma), input_lags=input_lags,
-                         output_lags=output_lags, lag_step=step, max_rows=max_rows)
         before = AugmentedModel.identify(narx, uf, yf, blocks, dt)
     else:
         if model.effects:
             say(f"the given model already has effects {model.effect_names}")
         before = model
         narx = _template(model, max_rows)
-        tuning = {"C": narx.regressor.C, "sigma": narx.regressor.sigma,
-                  "lag_step": narx.lag_step, "objective": "given model"}
-    screen = NarxModel(LSSVMRegressor(C=narx.regressor.C, sigma=narx.regressor.sigma),
-                       input_lags=narx.input_lags, output_lags=narx.output_lags,
-                       lag_step=narx.lag_step, max_rows=screen_rows)
+        first = narx.members[0] if isinstance(narx, NarxCommittee) else narx
+        tuning = {"C": first.regressor.C, "sigma": first.regressor.sigma,
+                  "lag_step": first.lag_step, "objective": "given model"}
+        if isinstance(narx, NarxCommittee):
+            tuning["committee"] = [{"C": m.regressor.C, "sigma": m.regressor.sigma,
+                                    "input_lags": m.input_lags} for m in narx.members]
+    # the parameter grids are screened with one model (a committee's first, shortest member)
+    first = narx.members[0] if isinstance(narx, NarxCommittee) else narx
+    screen = NarxModel(LSSVMRegressor(C=first.regressor.C, sigma=first.regressor.sigma),
+                       input_lags=first.input_lags, output_lags=first.output_lags,
+                       lag_step=first.lag_step, max_rows=screen_rows)
     shift = input_shift(uf, u[cut:], rate)
     if shift["shifted"]:
         say(shift["text"])
@@ -1433,6 +1466,11 @@ def _tuning_text(t: dict) -> str:
         return "given"
     mem = t.get("memory_taus_s")
     mem = f", memory channels {', '.join(f'{x:g}' for x in mem)} s" if mem else ""
+    if t.get("committee"):
+        members = "; ".join(f"{c.get('input_lags')} input lags: C = {c.get('C', np.nan):.4g}, "
+                            f"sigma = {c.get('sigma', np.nan):.4g}" for c in t["committee"])
+        return (f"committee, the mean of {len(t['committee'])} models ({members}), "
+                f"lag step {t.get('lag_step')} ({t.get('objective')})")
     return (f"C = {t.get('C', float('nan')):.4g}, sigma = {t.get('sigma', float('nan')):.4g}, "
             f"lag step {t.get('lag_step')}{mem} ({t.get('objective')})")
 

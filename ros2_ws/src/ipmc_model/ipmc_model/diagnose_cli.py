@@ -1,6 +1,6 @@
 """``ipmc diagnose``: residual -> missing physical effect -> augmented model, before and after.
 
-``ipmc diagnose --data FILE.csv|BAG [--model MODEL] --report DIR [--seed N]``
+``ipmc diagnose --data FILE.csv|BAG [--model MODEL] --report DIR [--seed N] [--committee]``
 
 Writes ``summary.json``, ``report.md``, figures and the model files before/after to DIR;
 progress goes to stderr. See :mod:`ipmc_model.diagnose` for the procedure.
@@ -34,6 +34,11 @@ def _parser() -> argparse.ArgumentParser:
            "these time constants (s, e.g. 1 3), each one more input channel; they carry the "
            "back-relaxation beyond the baseline's 1.2 s lag window (docs/diagnose.md, "
            "'Memory channels'); default none; not with --model")
+    p.add_argument("--committee", action="store_true",
+                   help="identify the baseline as the mean of three LSSVM-NARX with 1.2, 1.8 "
+                        "and 2.4 s input windows (each tuned on its own): less error on new "
+                        "input than one model, about three times the cost (docs/diagnose.md, "
+                        "session 32); not with --model or --input-memory-taus")
     return p
 
 
@@ -53,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
                                  f"data are at {rec.rate_hz:.4g} Hz")
         d = diagnose(rec.t_s, rec.u_v, rec.y_mm, model=model, seed=args.seed,
                      memory_taus_s=taus_list(args.input_memory_taus),
-                     progress=print_progress)
+                     committee=args.committee, progress=print_progress)
         summary = write_report(d, args.report, data_label=str(args.data))
     except ValueError as exc:  # DataError, ModelFileError and bad inputs are ValueErrors
         print(f"ipmc diagnose: error: {exc}", file=sys.stderr)

@@ -83,7 +83,7 @@ from scipy.signal import lfilter
 from ipmc_driver.validation import as_signal, same_length
 
 from .errors import ModelFileError
-from .narx import FreeRunCache, InverseNarxModel, NarxModel
+from .narx import FreeRunCache, InverseNarxModel, NarxCommittee, NarxModel
 from .persistence import load_model, read_model_document, save_model
 
 EFFECT_NAMES = ("creep", "drift", "delay", "rate_dependence", "asymmetry", "dead_zone",
@@ -380,12 +380,26 @@ def _late_low_pass(x: np.ndarray, dt_s: float, tau_s: float, gain: float) -> np.
 
 
 # -- the augmented model --
+def _channel_lags(lags, n_ch: int, chans) -> tuple[int, ...]:
+    """Per-channel input lags of a template refitted on ``n_ch`` channels: the voltage and the
+    channels ``chans`` (block names, in order) the input blocks add. The lags the template
+    gives per channel name the channels it knew (the voltage, memory channels); the rate
+    channel gets one lag: the rate now is the effect, and 12 lags of it were a second copy of
+    the voltage's window (a bigger model, not a physical block: docs/diagnose.md, "Rate
+    dependence: one lag")."""
+    per = [lags] * n_ch if np.isscalar(lags) else list(lags) + [lags[0]] * (n_ch - len(lags))
+    for i, name in enumerate(chans, start=1):
+        if name == "rate_dependence":
+            per[i] = 1
+    return tuple(per)
+
+
 class AugmentedModel:
     """A fitted baseline NARX model with physical effects around it (see the module docstring).
 
     Parameters
     ----------
-    baseline : NarxModel (fitted)
+    baseline : NarxModel or NarxCommittee (fitted)
         Fitted on the data seen through ``effects`` (transformed input, effect-free output).
     effects : sequence of Effect
         In the order they were added; input effects act in this order on u, output effects in
@@ -400,9 +414,10 @@ class AugmentedModel:
     (creep state, delay line) before the first sample.
     """
 
-    def __init__(self, baseline: NarxModel, effects=(), dt_s: float = 0.01):
-        if not isinstance(baseline, NarxModel):
-            raise ValueError(f"baseline must be a NarxModel, got {type(baseline).__name__}")
+    def __init__(self, baseline: NarxModel | NarxCommittee, effects=(), dt_s: float = 0.01):
+        if not isinstance(baseline, (NarxModel, NarxCommittee)):
+            raise ValueError("baseline must be a NarxModel or NarxCommittee, got "
+                             f"{type(baseline).__name__}")
         if not dt_s > 0:
             raise ValueError(f"dt_s must be > 0, got {dt_s}")
         self.baseline = baseline
@@ -510,20 +525,11 @@ class AugmentedModel:
                            self.dt_s)
         v, z = m.to_baseline_space(u, y)
         nx = copy.deepcopy(narx)
-        lags = nx.input_lags
         n_ch = 1 if v.ndim == 1 else v.shape[1]
         if n_ch > 1:
-            # per-channel lags name the channels the template knew (the voltage, memory
-            # channels); the rate channel gets one lag: the rate now is the effect, and 12
-            # lags of it were a second copy of the voltage's window (a bigger model, not a
-            # physical block: docs/diagnose.md, "Rate dependence: one lag")
-            per = ([lags] * n_ch if np.isscalar(lags)
-                   else list(lags) + [lags[0]] * (n_ch - len(lags)))
             chans = [e.name for e in m._inputs() if e.name in CHANNEL_BLOCKS]
-            for i, name in enumerate(chans, start=1):
-                if name == "rate_dependence":
-                    per[i] = 1
-            nx.input_lags = tuple(per)
+            for one in (nx.members if isinstance(nx, NarxCommittee) else [nx]):
+                one.input_lags = _channel_lags(one.input_lags, n_ch, chans)
         m.baseline = nx.fit(v, z)
         return m
 
@@ -693,7 +699,7 @@ def load_augmented(path, dt_s: float | None = None) -> AugmentedModel:
         return m
     read_model_document(path)  # raises ModelFileError with the reason if not a model file
     base = load_model(path)
-    if not isinstance(base, NarxModel):
+    if not isinstance(base, (NarxModel, NarxCommittee)):
         raise ModelFileError(f"{path}: a {type(base).__name__} cannot be a baseline here; "
                              "give an lssvm-narx forward model.")
     if dt_s is None:

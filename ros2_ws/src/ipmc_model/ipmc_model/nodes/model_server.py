@@ -54,7 +54,7 @@ from ipmc_driver.dataio import stamp_ns
 from ipmc_driver.node_runtime import run_node
 from ipmc_driver.qos import DIAGNOSTICS_QOS, PAIRED_SAMPLE_QOS, SAMPLE_QOS
 from ipmc_model.forward_inversion import ForwardInversionFeedforward
-from ipmc_model.narx import InverseNarxModel, NarxModel
+from ipmc_model.narx import InverseNarxModel, NarxCommittee, NarxModel
 from ipmc_model.persistence import load_model
 from ipmc_model.residuals import ResidualMonitor
 
@@ -90,7 +90,7 @@ def load_model_set(model_file: str, inverse_model_file: str = ""):
 
     Returns
     -------
-    (forward, inverse) : (NarxModel or None, InverseNarxModel or None)
+    (forward, inverse) : (NarxModel, NarxCommittee or None; InverseNarxModel or None)
 
     Raises
     ------
@@ -102,11 +102,12 @@ def load_model_set(model_file: str, inverse_model_file: str = ""):
         m = load_model(model_file)
         if isinstance(m, InverseNarxModel):
             inverse = m
-        elif isinstance(m, NarxModel):
+        elif isinstance(m, (NarxModel, NarxCommittee)):
             forward = m
         else:
             raise ModelSetError(f"{model_file}: a {type(m).__name__} has no step-wise API; the "
-                                "model server serves lssvm-narx and lssvm-narx-inverse models.")
+                                "model server serves lssvm-narx (also a committee) and "
+                                "lssvm-narx-inverse models.")
     if inverse_model_file:
         m = load_model(inverse_model_file)
         if not isinstance(m, InverseNarxModel):
@@ -169,6 +170,10 @@ def _stamp_ns(msg) -> int:
 def _describe(model) -> str:
     if model is None:
         return "none"
+    if isinstance(model, NarxCommittee):
+        centres = sum(m.regressor_.centers_.shape[0] for m in model.members)
+        return (f"lssvm-narx-committee ({len(model.members)} models, {centres} centres, max lag "
+                f"{model.max_lag_})")
     narx = model.narx_ if isinstance(model, InverseNarxModel) else model
     kind = "lssvm-narx-inverse" if isinstance(model, InverseNarxModel) else "lssvm-narx"
     channels = ""
