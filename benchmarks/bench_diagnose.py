@@ -2,6 +2,7 @@
 third-party data (Bouc-Wen, piezo). Prints figures; not part of the pass/fail suite.
 
     .venv/bin/python benchmarks/bench_diagnose.py [timing|thirdparty|all]
+    .venv/bin/python benchmarks/bench_diagnose.py timing committee
     .venv/bin/python benchmarks/bench_diagnose.py effects [SEED...] [LABEL_PREFIX...]
     .venv/bin/python benchmarks/bench_diagnose.py creepfit [SEED...]
     .venv/bin/python benchmarks/bench_diagnose.py slowcreep [SEED...]
@@ -73,10 +74,10 @@ def plant_record(effects, seconds, seed, rate=RATE, holds=False):
     return Record(run.t_s, u, run.y_mm)
 
 
-def run_cli(csv_path, out, model=None):
+def run_cli(csv_path, out, model=None, extra=()):
     t0 = time.perf_counter()
     code = diagnose_main(["--data", str(csv_path), "--report", str(out), "--seed", "0"]
-                         + (["--model", str(model)] if model else []))
+                         + (["--model", str(model)] if model else []) + list(extra))
     import json
 
     s = json.loads((Path(out) / "summary.json").read_text()) if code == 0 else {}
@@ -92,19 +93,24 @@ def _mixed_record(fx, seconds, seed, path, amplitude=3.0):
     return save_csv(Record(run.t_s, run.u_v, run.y_mm), path)
 
 
-def timing(tmp):
+def timing(tmp, committee=False):
     """Must-show 3 on 30 000 samples, both ways: the diagnosis's own baseline, and a given model
     around which two static blocks are fitted, refitted together and halved (the slowest kind
-    of record known: session 29)."""
+    of record known: session 29). ``committee``: both baselines are committees
+    (``--committee``, session 32)."""
+    extra = ["--committee"] if committee else []
+    if committee:
+        print("timing with committee baselines (--committee)")
     rec = plant_record({"creep": {}}, 600.0, seed=0)  # 30 000 samples at 50 Hz
     p = save_csv(rec, Path(tmp) / "long.csv")
-    code, sec, s = run_cli(p, Path(tmp) / "long")
+    code, sec, s = run_cli(p, Path(tmp) / "long", extra=extra)
     print(f"timing: {len(rec)} samples: exit {code}, wall {sec:.1f} s (limit 300 s); "
           f"found {s.get('effects_found')}, free-run RMSE {s.get('rmse_before_mm')} -> "
           f"{s.get('rmse_after_mm')} mm", flush=True)
     # a clean day's model (120 s of the mixed 3 V input, seed 0), then 600 s of a later day
     # (seed 100) with an asymmetry 0.8 and a 0.3 V dead zone
-    _, _, s1 = run_cli(_mixed_record({}, 120.0, 0, Path(tmp) / "day1.csv"), Path(tmp) / "day1")
+    _, _, s1 = run_cli(_mixed_record({}, 120.0, 0, Path(tmp) / "day1.csv"), Path(tmp) / "day1",
+                       extra=extra)
     p2 = _mixed_record({"asymmetry": {"negative_gain_ratio": 0.8}, "dead_zone": {"width_v": 0.3}},
                        600.0, 100, Path(tmp) / "day2long.csv")
     code, sec, s = run_cli(p2, Path(tmp) / "day2long", model=s1["model_before"])
@@ -365,7 +371,7 @@ if __name__ == "__main__":
     threadpool_limits(1)  # small solves; the machine is shared
     with tempfile.TemporaryDirectory() as tmp:
         if what in ("timing", "all"):
-            timing(tmp)
+            timing(tmp, committee=sys.argv[2:3] == ["committee"])
         if what in ("effects", "all"):
             args = sys.argv[2:] if what == "effects" else []
             effects(tmp, tuple(int(a) for a in args if a.isdigit()) or (0, 1, 2),
