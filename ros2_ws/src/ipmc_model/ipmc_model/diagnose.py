@@ -99,7 +99,7 @@ from .effects import (
     save_augmented,
 )
 from .lssvm import LSSVMRegressor
-from .narx import FreeRunCache, InverseNarxModel, NarxCommittee, NarxModel
+from .narx import FreeRunCache, InverseNarxModel, NarxCommittee, NarxModel, members_of
 from .persistence import save_model
 from .residuals import (
     acf,
@@ -591,7 +591,7 @@ def _rate_control_test(current: AugmentedModel, narx: NarxModel, eff, u, y, cut:
     # second window, which is a bigger model and no control
     # diagnose's template gives every channel it has its lags: a scalar for the voltage alone
     nx = copy.deepcopy(narx)
-    for one in (nx.members if isinstance(nx, NarxCommittee) else [nx]):
+    for one in members_of(nx):
         lags = one.input_lags
         one.input_lags = ((lags,) if np.isscalar(lags) else tuple(lags)) + (1,)
     try:
@@ -853,14 +853,14 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
             say(f"the given model already has effects {model.effect_names}")
         before = model
         narx = _template(model, max_rows)
-        first = narx.members[0] if isinstance(narx, NarxCommittee) else narx
-        tuning = {"C": first.regressor.C, "sigma": first.regressor.sigma,
-                  "lag_step": first.lag_step, "objective": "given model"}
+        given = [{"C": m.regressor.C, "sigma": m.regressor.sigma, "input_lags": m.input_lags}
+                 for m in members_of(narx)]
+        tuning = {"C": given[0]["C"], "sigma": given[0]["sigma"], "lag_step": narx.lag_step,
+                  "objective": "given model"}
         if isinstance(narx, NarxCommittee):
-            tuning["committee"] = [{"C": m.regressor.C, "sigma": m.regressor.sigma,
-                                    "input_lags": m.input_lags} for m in narx.members]
+            tuning["committee"] = given
     # the parameter grids are screened with one model (a committee's first, shortest member)
-    first = narx.members[0] if isinstance(narx, NarxCommittee) else narx
+    first = members_of(narx)[0]
     screen = NarxModel(LSSVMRegressor(C=first.regressor.C, sigma=first.regressor.sigma),
                        input_lags=first.input_lags, output_lags=first.output_lags,
                        lag_step=first.lag_step, max_rows=screen_rows)

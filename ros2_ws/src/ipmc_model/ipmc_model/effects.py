@@ -83,7 +83,7 @@ from scipy.signal import lfilter
 from ipmc_driver.validation import as_signal, same_length
 
 from .errors import ModelFileError
-from .narx import FreeRunCache, InverseNarxModel, NarxCommittee, NarxModel
+from .narx import FreeRunCache, InverseNarxModel, NarxCommittee, NarxModel, members_of
 from .persistence import load_model, read_model_document, save_model
 
 EFFECT_NAMES = ("creep", "drift", "delay", "rate_dependence", "asymmetry", "dead_zone",
@@ -528,7 +528,7 @@ class AugmentedModel:
         n_ch = 1 if v.ndim == 1 else v.shape[1]
         if n_ch > 1:
             chans = [e.name for e in m._inputs() if e.name in CHANNEL_BLOCKS]
-            for one in (nx.members if isinstance(nx, NarxCommittee) else [nx]):
+            for one in members_of(nx):
                 one.input_lags = _channel_lags(one.input_lags, n_ch, chans)
         m.baseline = nx.fit(v, z)
         return m

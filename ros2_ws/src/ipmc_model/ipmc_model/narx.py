@@ -65,6 +65,16 @@ def _as_inputs(name: str, u, min_length: int = 1) -> np.ndarray:
     return as_signal(name, arr, min_length=min_length)[:, None]
 
 
+def _initial_outputs(y_init, L: int) -> np.ndarray:
+    """A free run's first ``L`` outputs (mm): ``y_init``, checked, or zeros (rest)."""
+    if y_init is None:
+        return np.zeros(L)
+    y0 = np.atleast_1d(np.asarray(y_init, dtype=float))
+    if y0.shape != (L,) or not np.all(np.isfinite(y0)):
+        raise ValueError(f"y_init must be {L} finite values (max lag), got {y0.shape}")
+    return y0
+
+
 def _lags_per_channel(input_lags, n_channels: int) -> tuple[int, ...]:
     lags = (input_lags,) * n_channels if np.isscalar(input_lags) else tuple(input_lags)
     if len(lags) != n_channels:
@@ -281,12 +291,7 @@ class NarxModel:
         L = self.max_lag_
         us = self.input_channels(u, "u", min_length=L + 1)
         self._check_inputs(us)
-        if y_init is None:
-            return us, np.zeros(L)
-        y0 = np.atleast_1d(np.asarray(y_init, dtype=float))
-        if y0.shape != (L,) or not np.all(np.isfinite(y0)):
-            raise ValueError(f"y_init must be {L} finite values (max lag), got {y0.shape}")
-        return us, y0
+        return us, _initial_outputs(y_init, L)
 
     def _free_run(self, us: np.ndarray, y0: np.ndarray) -> np.ndarray:
         """The free run in standardised units from input channels ``us`` and initial outputs
@@ -338,7 +343,7 @@ class NarxCommittee:
     errors on input they were not fitted on. So the mean of their outputs errs less than any
     one of them. On 24 clean records of the simulated plant, three nonlinear FIR models with
     1.2, 1.8 and 2.4 s windows gave a held-out free-run RMSE 24 % lower in sum than the single
-    1.2 s model, and lower on 21 of the 24 (docs/diagnose.md, session 32).
+    1.2 s model, and lower on 22 of the 24 (docs/diagnose.md, session 32).
 
     ``fit``, ``predict``, ``simulate`` and ``stepper`` work as :class:`NarxModel`'s and give
     the members' mean. Every member sees the same input channels, and none may build voltage
@@ -424,14 +429,8 @@ class NarxCommittee:
         check_fitted(self, "regressor_")
         L = self.max_lag_
         us = _as_inputs("u", u, min_length=L + 1)
-        if us.shape[1] != self.n_inputs_:
-            raise ValueError(f"u must have {self.n_inputs_} channel(s), got {us.shape[1]}")
-        if y_init is None:
-            return us, np.zeros(L)
-        y0 = np.atleast_1d(np.asarray(y_init, dtype=float))
-        if y0.shape != (L,) or not np.all(np.isfinite(y0)):
-            raise ValueError(f"y_init must be {L} finite values (max lag), got {y0.shape}")
-        return us, y0
+        self.members[0]._check_inputs(us)  # the members share their input channels
+        return us, _initial_outputs(y_init, L)
 
     def _free_run(self, us: np.ndarray, y0: np.ndarray) -> np.ndarray:
         # in mm: a committee has no scaling of its own (the cache calls _scale_y, _unscale_y)
@@ -472,6 +471,11 @@ class CommitteeStepper:
     def correct_output(self, y_measured_k: float) -> None:
         for s in self._steppers:
             s.correct_output(y_measured_k)
+
+
+def members_of(model: NarxModel | NarxCommittee) -> list[NarxModel]:
+    """The NARX models a model is made of: a committee's members, or the model itself."""
+    return list(model.members) if isinstance(model, NarxCommittee) else [model]
 
 
 class FreeRunCache:
