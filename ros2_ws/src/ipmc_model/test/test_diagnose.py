@@ -908,7 +908,7 @@ def test_input_shift_flags_a_held_out_input_beyond_the_fit_range():
 
 def test_a_committee_baseline_errs_less_on_new_input(tmp_path):
     """``--committee``: the baseline is the mean of three windows (12, 18, 24 lags), each tuned;
-    on clean `mixed` records it had less held-out error on 23 of 24 (docs/diagnose.md, session
+    on clean records it had less held-out error on 22 of 24 (docs/diagnose.md, session
     32). Seeds 1 and 14 here; saved and loaded as a committee; refused with --model."""
     from ipmc_model.effects import load_augmented
     from ipmc_model.narx import NarxCommittee, NarxModel
