@@ -3,6 +3,9 @@ third-party data (Bouc-Wen, piezo). Prints figures; not part of the pass/fail su
 
     .venv/bin/python benchmarks/bench_diagnose.py [timing|thirdparty|all]
     .venv/bin/python benchmarks/bench_diagnose.py timing committee
+
+``committee`` as a word of ``timing``, ``effects``, ``stale``, ``combos``: every baseline the
+benchmark identifies is a committee (``--committee``, session 32).
     .venv/bin/python benchmarks/bench_diagnose.py effects [SEED...] [LABEL_PREFIX...]
     .venv/bin/python benchmarks/bench_diagnose.py creepfit [SEED...]
     .venv/bin/python benchmarks/bench_diagnose.py slowcreep [SEED...]
@@ -84,13 +87,18 @@ def run_cli(csv_path, out, model=None, extra=()):
     return code, time.perf_counter() - t0, s
 
 
-def _mixed_record(fx, seconds, seed, path, amplitude=3.0):
-    """The plant with effects ``fx`` on the mixed input (``amplitude`` V), saved as CSV."""
+def _mixed_run(fx, seconds, seed, amplitude=3.0) -> Record:
+    """The plant with effects ``fx`` on the mixed input (``amplitude`` V)."""
     from ipmc_driver.signals import mixed
 
     _, u = mixed(seconds, RATE, amplitude, band_hz=(0.02, 0.8), seed=seed)
     run = IpmcPlant(effects=fx, seed=seed, dt_s=1 / RATE).run(u)
-    return save_csv(Record(run.t_s, run.u_v, run.y_mm), path)
+    return Record(run.t_s, run.u_v, run.y_mm)
+
+
+def _mixed_record(fx, seconds, seed, path, amplitude=3.0):
+    """:func:`_mixed_run`, saved as CSV."""
+    return save_csv(_mixed_run(fx, seconds, seed, amplitude), path)
 
 
 def timing(tmp, committee=False):
@@ -155,7 +163,7 @@ PAIR_CASES = [
 ]
 
 
-def effects(tmp, seeds=(0, 1, 2), only=None, cases=CASES):
+def effects(tmp, seeds=(0, 1, 2), only=None, cases=CASES, extra=()):
     print("| plant effect (not told) | seconds | seed | found | free-run RMSE before (mm) | "
           "after (mm) | wall (s) | fitted | in the data, not accepted | undecided (holds) |")
     print("|---|---|---|---|---|---|---|---|---|---|")
@@ -166,7 +174,7 @@ def effects(tmp, seeds=(0, 1, 2), only=None, cases=CASES):
             stem = f"{label.split()[0].strip(':')}{len(label)}_{seed}"
             p = save_csv(plant_record(eff, seconds, seed, holds=bool(holds and holds[0])),
                          Path(tmp) / f"{stem}.csv")
-            code, sec, s = run_cli(p, Path(tmp) / stem)
+            code, sec, s = run_cli(p, Path(tmp) / stem, extra=extra)
             fitted = "; ".join(f"{c['effect']}: {c['evidence'].get('describe', '')}"
                                for c in s.get("candidates", []) if c["accepted"])
             named = ", ".join(dict.fromkeys(
@@ -256,7 +264,7 @@ COMBO_CHANGES = (
 )
 
 
-def stale(tmp, seeds=(0, 1), amplitude=3.0, only=None, changes=STALE_CHANGES):
+def stale(tmp, seeds=(0, 1), amplitude=3.0, only=None, changes=STALE_CHANGES, extra=()):
     """A model from a clean day, given with --model, on a later day's record with a change
     (``only``: labels starting with one of these prefixes; "none" always runs)."""
     print(f"mixed input {amplitude} V, 120 s at 50 Hz; day 1 clean (seed S), day 2 seed S + 100")
@@ -266,7 +274,8 @@ def stale(tmp, seeds=(0, 1), amplitude=3.0, only=None, changes=STALE_CHANGES):
         def record(fx, sd, name):
             return _mixed_record(fx, 120.0, sd, Path(tmp) / f"{name}.csv", amplitude)
 
-        _, _, s1 = run_cli(record({}, seed, f"day1_{seed}"), Path(tmp) / f"day1_{seed}")
+        _, _, s1 = run_cli(record({}, seed, f"day1_{seed}"), Path(tmp) / f"day1_{seed}",
+                           extra=extra)
         for label, fx in changes:
             if only and label != "none" and not label.startswith(only):
                 continue
@@ -288,8 +297,9 @@ BASELINE_VARIANTS = (
 
 
 def _baseline_row(t, u, y):
-    """Held-out free-run RMSE (mm) of each baseline variant, of their runs' mean and of the
-    tuning grid's best, over the same samples; the grid's best (C, sigma); the share of the
+    """Held-out free-run RMSE (mm) of each baseline variant, of their runs' mean, of the
+    committee (``diagnose(committee=True)``) and of the tuning grid's best, over the same
+    samples; the grid's best (C, sigma); the share of the
     held-out samples beyond the fit part's displacement range, and of the tuned one's squared
     error on them."""
     from ipmc_model.diagnose import TUNING_GRID_C, TUNING_GRID_SIGMA, _held_out, diagnose
@@ -299,13 +309,15 @@ def _baseline_row(t, u, y):
         return d.cut, _held_out(d.model_before, u, y, d.cut)[0], d.model_before.max_lag_
 
     runs = [held(**kw) for _, kw in BASELINE_VARIANTS]
+    com = held(committee=True)
     grid = {(c, s): held(C=c, sigma=s) for c in TUNING_GRID_C for s in TUNING_GRID_SIGMA}
     cut = runs[0][0]
-    lag = max(x[2] for x in runs + list(grid.values()))
+    lag = max(x[2] for x in runs + [com] + list(grid.values()))
     yh = y[cut:][lag:]
     scores = {g: float(np.sqrt(np.mean((yh - v[1][lag:]) ** 2))) for g, v in grid.items()}
     best = min(scores, key=scores.get)
-    frees = [x[1][lag:] for x in runs] + [np.mean([x[1][lag:] for x in runs], axis=0)]
+    frees = ([x[1][lag:] for x in runs] + [np.mean([x[1][lag:] for x in runs], axis=0)]
+             + [com[1][lag:]])
     res = [float(np.sqrt(np.mean((yh - f) ** 2))) for f in frees] + [scores[best]]
     e = yh - frees[0]
     out = (yh < y[:cut].min()) | (yh > y[:cut].max())
@@ -316,24 +328,18 @@ def baseline(seeds=tuple(range(12))):
     """The diagnosis's baseline alone (no candidate) on clean records: where its held-out
     error comes from (tuning, window, range), and what the mean of the variants' free runs
     gives. Every RMSE is over the same held-out samples (after the longest variant's lags)."""
-    from ipmc_driver.signals import mixed
-
     labels = [v[0] for v in BASELINE_VARIANTS]
     print("clean plant, 50 Hz; held-out free-run RMSE (mm) of the baseline alone")
-    print(f"| record | seed | {' | '.join(labels)} | mean of the {len(labels)} runs | grid's best "
-          "(C, sigma) | beyond the fit range: samples, squared error |")
-    print("|---|---|" + "---|" * (len(labels) + 3))
-    totals = np.zeros(len(labels) + 2)
+    print(f"| record | seed | {' | '.join(labels)} | mean of the {len(labels)} runs | committee "
+          "(12, 18, 24 lags) | grid's best (C, sigma) | beyond the fit range: samples, squared "
+          "error |")
+    print("|---|---|" + "---|" * (len(labels) + 4))
+    totals = np.zeros(len(labels) + 3)
     for kind in ("mixed 3 V, 120 s", "effects input, 90 s"):
         for seed in seeds:
-            if kind.startswith("mixed"):
-                _, u = mixed(120.0, RATE, 3.0, band_hz=(0.02, 0.8), seed=seed)
-                r = IpmcPlant(seed=seed, dt_s=1 / RATE).run(u)
-                t, u, y = r.t_s, r.u_v, r.y_mm
-            else:
-                rec = plant_record({}, 90.0, seed)
-                t, u, y = rec.t_s, rec.u_v, rec.y_mm
-            res, best, share, err_share = _baseline_row(t, u, y)
+            rec = _mixed_run({}, 120.0, seed) if kind.startswith("mixed") else \
+                plant_record({}, 90.0, seed)
+            res, best, share, err_share = _baseline_row(rec.t_s, rec.u_v, rec.y_mm)
             totals += res
             print(f"| {kind} | {seed} | {' | '.join(f'{x:.4f}' for x in res[:-1])} | "
                   f"{res[-1]:.4f} ({best[0]:g}, {best[1]:g}) | {share:.1f} %, "
@@ -368,24 +374,28 @@ def thirdparty(tmp):
 
 if __name__ == "__main__":
     what = sys.argv[1] if len(sys.argv) > 1 else "all"
+    committee = "committee" in sys.argv[2:]
+    sys.argv = [a for a in sys.argv if a != "committee"]
+    extra = ["--committee"] if committee else []
     threadpool_limits(1)  # small solves; the machine is shared
     with tempfile.TemporaryDirectory() as tmp:
         if what in ("timing", "all"):
-            timing(tmp, committee=sys.argv[2:3] == ["committee"])
+            timing(tmp, committee=committee)
         if what in ("effects", "all"):
             args = sys.argv[2:] if what == "effects" else []
             effects(tmp, tuple(int(a) for a in args if a.isdigit()) or (0, 1, 2),
-                    only=tuple(a for a in args if not a.isdigit()) or None)
+                    only=tuple(a for a in args if not a.isdigit()) or None, extra=extra)
         if what in ("thirdparty", "all"):
             thirdparty(tmp)
         if what == "stale":
             args = sys.argv[2:]
             stale(tmp, tuple(int(a) for a in args if a.isdigit()) or (0, 1),
-                  only=tuple(a for a in args if not a.isdigit()) or None)
+                  only=tuple(a for a in args if not a.isdigit()) or None, extra=extra)
         if what == "combos":
             args = sys.argv[2:]
             stale(tmp, tuple(int(a) for a in args if a.isdigit()) or (0, 1, 2, 3),
-                  only=tuple(a for a in args if not a.isdigit()) or None, changes=COMBO_CHANGES)
+                  only=tuple(a for a in args if not a.isdigit()) or None, changes=COMBO_CHANGES,
+                  extra=extra)
         if what == "pairs":
             effects(tmp, tuple(int(a) for a in sys.argv[2:]) or (0, 1, 2, 3), cases=PAIR_CASES)
         if what == "baseline":
