@@ -39,6 +39,9 @@ from .errors import check_fitted
 #: Largest N accepted by the exact solver (an N x N matrix of 8-byte floats: 20000 -> 3.2 GB).
 MAX_EXACT_SAMPLES = 15000
 
+#: Rows per block of :meth:`_KernelExpansion.predict` (a 1500-centre kernel block: 3 MB).
+_BLOCK_ROWS = 256
+
 
 def _check_hyper(C, sigma) -> tuple[float, float]:
     try:
@@ -110,18 +113,33 @@ class _KernelExpansion:
         self._row_a = np.asfortranarray(2.0 * self._gamma * self.centers_)
         self._row_c = -self._gamma * self._center_sq
 
-    def predict(self, X, chunk_size: int = 8192) -> np.ndarray:
-        """Regression output for rows of ``X`` (n, d) -> (n,)."""
+    def predict(self, X, chunk_size: int | None = None) -> np.ndarray:
+        """Regression output for rows of ``X`` (n, d) -> (n,), in blocks of ``chunk_size``
+        rows (default ``_BLOCK_ROWS``)."""
         check_fitted(self, "centers_")
         X = np.atleast_2d(np.asarray(X, dtype=float))
         if X.shape[1] != self.centers_.shape[1]:
             raise ValueError(
                 f"X must have {self.centers_.shape[1]} columns, got {X.shape[1]}"
             )
-        out = np.empty(X.shape[0])
-        for s in range(0, X.shape[0], chunk_size):
-            k = rbf_kernel(X[s : s + chunk_size], self.centers_, self.sigma_)
-            out[s : s + chunk_size] = k @ self.coef_ + self.intercept_
+        # predict_one's exponent, a block of rows at a time: a block that stays in cache runs
+        # 30 000 rows of a 1500-centre model in 0.07 s, against 0.16 s for 8192-row blocks of
+        # rbf_kernel or for 30 000 predict_one calls (session 33)
+        rows = int(chunk_size or _BLOCK_ROWS)
+        n = X.shape[0]
+        out = np.empty(n)
+        for s in range(0, n, rows):
+            xb = X[s : s + rows]
+            if xb.shape[0] < rows:
+                # every block the same shape, so BLAS takes the same path for each: a row's
+                # output does not depend on how many rows follow it (a free run's prefix is
+                # the prefix of its run, to the bit, which the diagnosis's cache relies on)
+                xb = np.concatenate([xb, np.zeros((rows - xb.shape[0], X.shape[1]))])
+            t = xb @ self._row_a.T
+            t += self._row_c
+            t -= self._gamma * (xb * xb).sum(1)[:, None]
+            np.exp(t, out=t)
+            out[s : s + rows] = (t @ self.coef_)[: n - s] + self.intercept_
         return out
 
     def predict_one(self, x: np.ndarray) -> float:

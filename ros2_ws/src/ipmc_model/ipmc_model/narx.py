@@ -303,6 +303,14 @@ class NarxModel:
         z = np.empty(N)
         z[:L] = self._scale_y(y0)
         out_delays = self.out_delays_
+        if out_delays.size == 0:
+            # no output feedback (a nonlinear FIR model, the diagnosis's baseline): the free
+            # run is the batch prediction of its input rows
+            z[L:] = self.regressor_.predict(zu)
+            bad = np.flatnonzero(~(np.abs(z[L:]) < 1e6))
+            if bad.size:
+                z[L + bad[0] :] = np.nan
+            return z
         x = np.empty(du + out_delays.size)
         f = getattr(self.regressor_, "predict_one", None)
         if f is None:

@@ -40,6 +40,10 @@ def test_predict_one_equals_predict(data):
     batch = m.predict(X[:20])
     single = [m.predict_one(x) for x in X[:20]]
     assert_allclose(single, batch, rtol=1e-10, atol=1e-12)
+    # in blocks of rows that do not divide the record, the same
+    assert_allclose(m.predict(X[:20], chunk_size=7), batch, rtol=1e-12, atol=1e-14)
+    assert_allclose(m.predict(X), rbf_kernel(X, m.centers_, 1.0) @ m.coef_ + m.intercept_,
+                    rtol=1e-9, atol=1e-12)
 
 
 def test_fixed_size_with_all_points_equals_exact(data):

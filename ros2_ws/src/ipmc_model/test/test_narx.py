@@ -48,6 +48,39 @@ def test_stepper_with_measured_output_is_one_step(hyst_data, fitted):
     assert_allclose(out, one[3:], rtol=1e-9, atol=1e-9)
 
 
+def test_a_model_without_output_lags_runs_free_as_its_stepper(hyst_data):
+    """Without output lags (the diagnosis's baseline) the free run is computed in blocks of
+    rows; it must be the step-by-step run, and the one-step prediction."""
+    u, y = hyst_data
+    m = NarxModel(LSSVMRegressor(C=1e3, sigma=3.0), input_lags=6, output_lags=0,
+                  lag_step=2).fit(u[:800], y[:800])
+    L = m.max_lag_
+    assert L == 12 and m.out_delays_.size == 0
+    free = m.simulate(u[800:], y[800 : 800 + L])
+    st = m.stepper(u_history=u[800 : 800 + L], y_history=y[800 : 800 + L])
+    assert_allclose([st.step(v) for v in u[800 + L :]], free[L:], rtol=1e-9, atol=1e-9)
+    assert_allclose(m.predict(u[800:], y[800:]), free, rtol=1e-12, atol=1e-12)
+    assert rmse(y[800:], free, L) < 0.2 * np.std(y[800:])
+
+
+class _Blows:
+    """A regressor whose output leaves any range where its first regressor exceeds 1."""
+
+    def fit(self, X, y):
+        return self
+
+    def predict(self, X):
+        return np.where(X[:, 0] > 1.0, 1e7, 0.5)
+
+
+def test_a_free_run_without_output_lags_is_nan_from_where_it_diverges():
+    u = np.r_[np.zeros(30), 2.0, np.zeros(29)] + np.linspace(0, 0.01, 60)
+    m = NarxModel(_Blows(), input_lags=2, output_lags=0, standardize=False).fit(u, u)
+    z = m.simulate(u)
+    k = 30  # the first row whose current input is above 1
+    assert np.all(np.isfinite(z[:k])) and np.all(np.isnan(z[k:]))
+
+
 def test_lag_step_and_extra_exogenous_input(hyst_data):
     u, y = hyst_data
     slow = np.convolve(u, np.ones(50) / 50, mode="full")[: u.size]  # e.g. a creep regressor
