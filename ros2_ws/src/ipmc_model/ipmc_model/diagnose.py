@@ -110,6 +110,7 @@ from .residuals import (
     ljung_box,
     noise_floor,
     spectrum,
+    travel_low_pass,
     whiteness_summary,
 )
 
@@ -507,6 +508,17 @@ SATURATION_MAX_REACH = 1.5
 #: drift was accepted at +18.2 % (seed 9), its trend 0.80 of the fitted one, lower bound -0.56
 #: (docs/diagnose.md, "A drift is a trend in time").
 DRIFT_TREND_BLOCKS = 20
+#: Travel constants (V) of the hysteresis-memory nuisance of the drift's trend test: the input
+#: low-passed over its travel (:func:`~ipmc_model.residuals.travel_low_pass`), the one of these
+#: that best explains the fit part's residual. The clean plant's Bouc-Wen hysteresis forgets
+#: in proportion to the input's travel; beyond the baseline's lag window that memory leaves a
+#: slow residual that a drift fitted in time stood in for (switched off in the plant, the
+#: false drifts' gain fell from 16-38 % to < 5 %: docs/diagnose.md, "The false drifts are the
+#: plant's hysteresis", session 33).
+DRIFT_TRAVEL_GRID_V = (5.0, 10.0, 20.0, 40.0, 80.0)
+#: Largest travel constant, as a share of the fit part's whole travel: a longer one would
+#: trend through the record like a drift.
+DRIFT_TRAVEL_MAX_SHARE = 0.25
 
 #: Significance of the refit-free evidence tests (F test of the dead-time scan).
 REFIT_FREE_ALPHA = 1e-3
@@ -614,6 +626,25 @@ def _rate_control_test(current: AugmentedModel, narx: NarxModel, eff, u, y, cut:
                 control_rmse_mm=r_ctrl, over_control=over)
 
 
+def hysteresis_memory(u_fit, e, nuisance, skip: int) -> tuple[float | None, np.ndarray | None]:
+    """(travel constant V, column) of the hysteresis-memory nuisance for the residual ``e``
+    (mm; the fit part from sample ``skip`` on, beside the ``nuisance`` columns): the input
+    ``u_fit`` (V) low-passed over the travel in :data:`DRIFT_TRAVEL_GRID_V` that explains most
+    of ``e``, up to :data:`DRIFT_TRAVEL_MAX_SHARE` of the input's whole travel; (None, None)
+    if the input travels too little for any."""
+    travel = float(np.abs(np.diff(u_fit)).sum())
+    best = (np.inf, None, None)
+    for c in DRIFT_TRAVEL_GRID_V:
+        if c > DRIFT_TRAVEL_MAX_SHARE * travel:
+            break
+        m = travel_low_pass(u_fit, c)[skip:]
+        A = np.column_stack([nuisance, m])
+        rss = float(np.sum((e - A @ np.linalg.lstsq(A, e, rcond=None)[0]) ** 2))
+        if rss < best[0]:
+            best = (rss, c, m)
+    return best[1], best[2]
+
+
 def _drift_trend_test(current: AugmentedModel, eff, u, y, cut: int, test: dict) -> dict:
     """A fitted drift (on the record, or around a given model) against the fit part's
     residual: is its trend there?
@@ -623,24 +654,33 @@ def _drift_trend_test(current: AugmentedModel, eff, u, y, cut: int, test: dict) 
     gains from any model error that differs between the two parts: a held-out gain or offset
     mismatch looks like a drift extrapolated. A drift is a trend in time, so the current model's
     in-sample residual must follow the fitted drift's change through the fit part: its
-    regression on that change (nuisance: the prediction and a constant, as in the fit), with a
-    95 % lower bound above 0 from a jackknife over :data:`DRIFT_TREND_BLOCKS` blocks (the
-    residual's slow swings, not its sample count, set the error)."""
+    regression on that change (nuisance: the prediction and a constant, as in the fit, and the
+    hysteresis's memory beyond the lag window, :func:`hysteresis_memory`), with a 95 % lower
+    bound above 0 from a jackknife over :data:`DRIFT_TREND_BLOCKS` blocks (the residual's slow
+    swings, not its sample count, set the error)."""
     L = current.max_lag_
     t = np.arange(cut) * current.dt_s
     with np.errstate(all="ignore"):
         z = current.simulate(u[:cut], y[:L])
     change = eff.forward(z, u[:cut], t, current.dt_s) - z
-    X = np.column_stack([change, z, np.ones(cut)])[L:]
+    e = y[L:cut] - z[L:]
+    nuisance = np.column_stack([z, np.ones(cut)])[L:]
+    travel_v, memory = hysteresis_memory(u[:cut], e, nuisance, L)
+    if memory is not None:
+        nuisance = np.column_stack([nuisance, memory])
     try:
-        jk = block_jackknife_coef(y[L:cut] - z[L:], X, blocks=DRIFT_TREND_BLOCKS)
+        jk = block_jackknife_coef(e, np.column_stack([change[L:], nuisance]),
+                                  blocks=DRIFT_TREND_BLOCKS)
     except ValueError:
         jk = {"coef": float("nan"), "se": float("nan"), "lower": float("nan"),
               "blocks": DRIFT_TREND_BLOCKS}
+    jk["hysteresis_travel_v"] = travel_v
     ok = bool(jk["lower"] > 0.0)  # NaN: no trend shown
+    beside = ("" if travel_v is None else f"; beside the input low-passed over {travel_v:g} V "
+              "of its travel, the hysteresis's memory")
     text = (f"{test['text']}; in the fit part's residual {jk['coef']:.2f} of the fitted drift's "
             f"trend, 95 % lower bound {jk['lower']:+.2f} (jackknife over {jk['blocks']} "
-            "blocks; needs > 0)"
+            f"blocks{beside}; needs > 0)"
             + ("" if ok else " (the trend is within the residual's slow scatter: the held-out "
                "gain is a model error that differs between the parts, not a drift)"))
     return dict(test, significant=bool(test["significant"] and ok), text=text, trend=jk)

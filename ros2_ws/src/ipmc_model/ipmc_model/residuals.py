@@ -213,6 +213,28 @@ def block_jackknife_coef(e, X, blocks: int = 20) -> dict:
             "blocks": k}
 
 
+def travel_low_pass(u, travel_v: float) -> np.ndarray:
+    """The input (V) low-passed over its travel: m_k = m_{k-1} + w_k (u_k - m_{k-1}),
+    w_k = min(1, |u_k - u_{k-1}| / ``travel_v``), from rest (u and m 0 before the record, as
+    the models' other states).
+
+    It forgets only while the input moves, about 1/e of the past per ``travel_v`` volts of
+    travel, and holds still during input holds however long: a rate-independent memory, as a
+    hysteresis has (a Bouc-Wen state forgets in proportion to |du|), unlike a low-pass in time.
+    A time-varying recursion, so a loop (no SciPy filter takes per-sample coefficients).
+    """
+    u = as_signal("u", u, min_length=1)
+    if not (np.isfinite(travel_v) and travel_v > 0):
+        raise ValueError(f"travel_v must be a finite number of volts > 0, got {travel_v}")
+    w = np.minimum(1.0, np.abs(np.diff(u, prepend=0.0)) / float(travel_v))
+    m = np.empty(u.size)
+    acc = 0.0
+    for k, (wk, uk) in enumerate(zip(w.tolist(), u.tolist(), strict=True)):
+        acc += wk * (uk - acc)
+        m[k] = acc
+    return m
+
+
 def spectrum(e, rate_hz: float, nperseg: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Power spectral density of ``e`` by Welch's method (``scipy.signal.welch``, Hann window).
 

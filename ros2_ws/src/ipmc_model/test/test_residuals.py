@@ -22,6 +22,7 @@ from ipmc_model.residuals import (
     low_frequency_share,
     noise_floor,
     spectrum,
+    travel_low_pass,
     whiteness_summary,
 )
 
@@ -334,6 +335,24 @@ def _slow_noise(seed, n=4200):
     residual's slow swings, shorter than a block of 1/20 of the record."""
     rng = np.random.default_rng(seed)
     return signal.lfilter([1.0], [1.0, -0.95], rng.standard_normal(n)) * 0.01
+
+
+def test_travel_low_pass_remembers_travel_not_time():
+    rng = np.random.default_rng(4)
+    u = np.cumsum(rng.normal(0.0, 0.2, 400)).clip(-3, 3)
+    m = travel_low_pass(u, 5.0)
+    # slower input (each sample held 3 times): the same memory at the same points, to the bit
+    assert np.array_equal(travel_low_pass(np.repeat(u, 3), 5.0)[2::3], m)
+    # a hold keeps it however long; a low-pass in time would settle on the held value
+    held = travel_low_pass(np.r_[u, np.full(5000, u[-1])], 5.0)
+    assert np.all(held[u.size:] == m[-1]) and abs(m[-1] - u[-1]) > 0.05
+    # it forgets with travel: from rest, after a sweep 20 x the constant, it has found the input
+    sweep = 2.0 * np.sin(np.linspace(0, 10 * np.pi, 2000)) + 1.0
+    assert travel_low_pass(sweep, 4.0)[0] == pytest.approx(sweep[0] * min(1.0, 1.0 / 4.0))
+    assert abs(travel_low_pass(sweep, 0.05)[-1] - sweep[-1]) < 0.05
+    assert abs(travel_low_pass(sweep, 4.0)[-1] - sweep[-1]) > 0.2  # a longer memory lags
+    with pytest.raises(ValueError, match="travel_v"):
+        travel_low_pass(u, 0.0)
 
 
 def test_block_jackknife_keeps_slow_swings_from_passing_as_a_trend():
