@@ -513,7 +513,7 @@ DRIFT_TREND_BLOCKS = 20
 #: that best explains the fit part's residual. The clean plant's Bouc-Wen hysteresis forgets
 #: in proportion to the input's travel; beyond the baseline's lag window that memory leaves a
 #: slow residual that a drift fitted in time stood in for (switched off in the plant, the
-#: false drifts' gain fell from 16-38 % to < 5 %: docs/diagnose.md, "The false drifts are the
+#: false drifts' gain fell from 15-38 % to < 5 %: docs/diagnose.md, "The false drifts are the
 #: plant's hysteresis", session 33).
 DRIFT_TRAVEL_GRID_V = (5.0, 10.0, 20.0, 40.0, 80.0)
 #: Largest travel constant, as a share of the fit part's whole travel: a longer one would
@@ -632,6 +632,8 @@ def hysteresis_memory(u_fit, e, nuisance, skip: int) -> tuple[float | None, np.n
     ``u_fit`` (V) low-passed over the travel in :data:`DRIFT_TRAVEL_GRID_V` that explains most
     of ``e``, up to :data:`DRIFT_TRAVEL_MAX_SHARE` of the input's whole travel; (None, None)
     if the input travels too little for any."""
+    if not (np.all(np.isfinite(e)) and np.all(np.isfinite(nuisance))):
+        return None, None  # a run that diverged: the trend test refuses it anyway
     travel = float(np.abs(np.diff(u_fit)).sum())
     best = (np.inf, None, None)
     for c in DRIFT_TRAVEL_GRID_V:
