@@ -290,8 +290,7 @@ def test_a_drift_must_trend_beside_the_hysteresis_memory():
     ev = next(c for c in d.candidates if c.effect == "drift").evidence
     assert ev["drift_trend"]["hysteresis_travel_v"] in (5.0, 10.0, 20.0, 40.0, 80.0)
     assert ev["drift_trend"]["lower"] <= 0 < ev["drift_trend"]["coef"]
-    assert "of its travel, the hysteresis's memory" in next(
-        c for c in d.candidates if c.effect == "drift").evidence["text"]
+    assert "of its travel, the hysteresis's memory" in ev["text"]
     fx = {"drift": {"gain_loss_per_min": 0.1, "offset_mm_per_min": 0.3}}
     d = diagnose(*_mixed_record(fx, seed=11))
     assert d.effects_found[:1] == ["drift"]

@@ -346,11 +346,12 @@ def test_travel_low_pass_remembers_travel_not_time():
     # a hold keeps it however long; a low-pass in time would settle on the held value
     held = travel_low_pass(np.r_[u, np.full(5000, u[-1])], 5.0)
     assert np.all(held[u.size:] == m[-1]) and abs(m[-1] - u[-1]) > 0.05
-    # it forgets with travel: from rest, after a sweep 20 x the constant, it has found the input
-    sweep = 2.0 * np.sin(np.linspace(0, 10 * np.pi, 2000)) + 1.0
-    assert travel_low_pass(sweep, 4.0)[0] == pytest.approx(sweep[0] * min(1.0, 1.0 / 4.0))
+    # from rest: the jump to the first sample is 1 V of travel, a quarter of 4 V
+    sweep = 2.0 * np.sin(np.linspace(0, 10 * np.pi, 2000)) + 1.0  # 40 V of travel
+    assert travel_low_pass(sweep, 4.0)[0] == pytest.approx(0.25)
+    # it forgets with travel: a 0.05 V memory has found the input, a 4 V one lags it
     assert abs(travel_low_pass(sweep, 0.05)[-1] - sweep[-1]) < 0.05
-    assert abs(travel_low_pass(sweep, 4.0)[-1] - sweep[-1]) > 0.2  # a longer memory lags
+    assert abs(travel_low_pass(sweep, 4.0)[-1] - sweep[-1]) > 0.2
     with pytest.raises(ValueError, match="travel_v"):
         travel_low_pass(u, 0.0)
 
