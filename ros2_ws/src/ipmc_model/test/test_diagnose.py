@@ -25,6 +25,7 @@ from ipmc_model.diagnose import (
     choose_lag_step,
     creep_rival,
     diagnose,
+    hysteresis_memory,
     input_shift,
 )
 from ipmc_model.diagnose_cli import main
@@ -296,6 +297,23 @@ def test_a_drift_must_trend_beside_the_hysteresis_memory():
     assert d.effects_found[:1] == ["drift"]
     ev = next(c for c in d.candidates if c.accepted and c.effect == "drift").evidence
     assert ev["drift_trend"]["lower"] > 0 and ev["drift_trend"]["hysteresis_travel_v"]
+
+
+def test_hysteresis_memory_picks_the_travel_that_explains_the_residual():
+    from ipmc_model.residuals import travel_low_pass
+
+    rng = np.random.default_rng(2)
+    t = np.arange(4000) / RATE
+    u = 1.5 * np.sin(2 * np.pi * 0.4 * t) + np.sin(2 * np.pi * 0.05 * t)
+    assert np.abs(np.diff(u)).sum() > 4 * 40.0  # the grid up to 40 V is allowed
+    e_true = 0.3 * travel_low_pass(u, 20.0)
+    nuisance = np.ones((4000 - 10, 1))
+    e = e_true[10:] + 0.01 * rng.standard_normal(3990)
+    c, col = hysteresis_memory(u, e, nuisance, 10)
+    assert c == 20.0 and np.array_equal(col, travel_low_pass(u, 20.0)[10:])
+    # a run that diverged, or an input that hardly moves: no memory column
+    assert hysteresis_memory(u, np.r_[e[:-1], np.nan], nuisance, 10) == (None, None)
+    assert hysteresis_memory(np.full(4000, 1.0), e, nuisance, 10) == (None, None)
 
 
 # -- a model from another day (given with --model): what changed since it was fitted --
