@@ -12,6 +12,7 @@ benchmark identifies is a committee (``--committee``, session 32).
     .venv/bin/python benchmarks/bench_diagnose.py stale [SEED...] [LABEL_PREFIX...]
     .venv/bin/python benchmarks/bench_diagnose.py combos [SEED...] [LABEL_PREFIX...]
     .venv/bin/python benchmarks/bench_diagnose.py pairs [SEED...]
+    .venv/bin/python benchmarks/bench_diagnose.py creepmodel [SEED...]
     .venv/bin/python benchmarks/bench_diagnose.py baseline [SEED...]
 
 ``effects``: every case of :data:`CASES` through the CLI, without ``--model`` (seeds 0, 1, 2
@@ -26,6 +27,10 @@ used to design the rules for two changes in sessions 28-29).
 
 ``pairs``: as ``effects``, with two effects at once in the plant (:data:`PAIR_CASES`; seeds
 0-3 by default; seeds 0 and 1 were used to design the creep + drift pair in session 30).
+
+``creepmodel``: a creep around a given model (:data:`CREEP_MODEL_CASES`; seeds 0-3 by
+default, used to design the frozen creep in session 34): day 1's baseline given with --model
+to a later day's record with input holds, on which the plant creeps (or not).
 
 ``baseline``: the diagnosis's own baseline on clean records (3 V ``mixed``, 120 s; the
 ``effects`` input, 90 s), held-out free-run RMSE as tuned, at the tuning grid's best on the
@@ -288,6 +293,48 @@ def stale(tmp, seeds=(0, 1), amplitude=3.0, only=None, changes=STALE_CHANGES, ex
                   f"{s.get('rmse_after_mm', 0):.4f} | {sec:.0f} s |", flush=True)
 
 
+#: ``creepmodel``: (label, day-1 plant, day-2 plant). The plant's default creep (20 s,
+#: -0.12 mm/V) and a strong one (12 s, -0.6 mm/V).
+CREEP_MODEL_CASES = (
+    ("clean -> clean", {}, {}),
+    ("clean -> creep 20 s", {}, {"creep": {}}),
+    ("clean -> creep 12 s, -0.6", {}, {"creep": {"tau_s": 12.0, "gain_mm_per_v": -0.6}}),
+    ("creep 20 s -> same", {"creep": {}}, {"creep": {}}),
+    ("creep 12 s, -0.6 -> same", {"creep": {"tau_s": 12.0, "gain_mm_per_v": -0.6}},
+     {"creep": {"tau_s": 12.0, "gain_mm_per_v": -0.6}}),
+)
+
+
+def creepmodel(tmp, seeds=(0, 1, 2, 3)):
+    """Creep around a given model: day 1's baseline (120 s of :func:`plant_record` with input
+    holds, no effect found or not, its ``model_before``: the baseline without effects, as the
+    paper's LSSVM-NARX has none) given with --model to a later day's record of the same kind
+    (seed + 100). A model fitted on a creeping plant has no creep either: its 1.2 s window
+    cannot hold one, so the creep is still missing around it (session 34)."""
+    print("120 s at 50 Hz, 0.6 x random sine + 1.5 V steps with input holds; day 1 seed S, "
+          "day 2 seed S + 100")
+    print("| day 1 -> day 2 plant | seed | found | fitted | held-out RMSE before -> after (mm) "
+          "| wall |")
+    print("|---|---|---|---|---|---|")
+    for seed in seeds:
+        day1 = {}  # one day-1 model per day-1 plant
+        for label, fx1, fx2 in CREEP_MODEL_CASES:
+            name = f"cm_{seed}_{label.replace(' ', '_').replace(',', '')}"
+            key = repr(fx1)
+            if key not in day1:
+                p1 = save_csv(plant_record(fx1, 120.0, seed, holds=True),
+                              Path(tmp) / f"{name}_day1.csv")
+                day1[key] = run_cli(p1, Path(tmp) / f"{name}_day1")[2]
+            s1 = day1[key]
+            p2 = save_csv(plant_record(fx2, 120.0, seed + 100, holds=True),
+                          Path(tmp) / f"{name}_day2.csv")
+            code, sec, s = run_cli(p2, Path(tmp) / f"{name}_day2", model=s1["model_before"])
+            acc = [c["evidence"]["describe"] for c in s.get("candidates", []) if c["accepted"]]
+            print(f"| {label} | {seed} | {', '.join(s.get('effects_found', [])) or 'none'} | "
+                  f"{'; '.join(acc)} | {s.get('rmse_before_mm', 0):.4f} -> "
+                  f"{s.get('rmse_after_mm', 0):.4f} | {sec:.0f} s |", flush=True)
+
+
 #: Baseline variants of ``baseline``: label -> keyword arguments of ``diagnose``.
 BASELINE_VARIANTS = (
     ("tuned", {}),
@@ -398,6 +445,8 @@ if __name__ == "__main__":
                   extra=extra)
         if what == "pairs":
             effects(tmp, tuple(int(a) for a in sys.argv[2:]) or (0, 1, 2, 3), cases=PAIR_CASES)
+        if what == "creepmodel":
+            creepmodel(tmp, tuple(int(a) for a in sys.argv[2:]) or (0, 1, 2, 3))
         if what == "baseline":
             baseline(tuple(int(a) for a in sys.argv[2:]) or tuple(range(12)))
         if what == "creepfit":

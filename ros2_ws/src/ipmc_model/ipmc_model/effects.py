@@ -55,7 +55,9 @@ last quarter) of the fit data.
 Around a model kept as it is (a model fitted on other data, given to the diagnosis),
 :func:`fit_frozen_effect` fits drift, delay, dead zone, asymmetry, saturation or rate
 dependence (its output form) as a block without refitting anything: the block is what changed
-since the model was fitted.
+since the model was fitted. :func:`fit_frozen_creep` does the same for creep, on the drift of
+the model's residual during input holds (a record without them cannot tell creep from path
+memory, and falls back to :func:`fit_effect`).
 
 Inversion (feedforward control): :meth:`AugmentedModel.inverse_stepper` wraps an inverse NARX
 fitted in the baseline's space (:meth:`AugmentedModel.fit_inverse`). For creep, at each step
@@ -1049,6 +1051,55 @@ def _fit_creep(model, narx, u, y, t, iterations):
     eff.fit_residual_ = first_residual
     eff.hold_fit_ = hold
     return model.refit(narx, u, y, model.effects + [eff]), eff
+
+
+def fit_frozen_creep(model: AugmentedModel, u, y, *,
+                     cache: FreeRunCache | None = None) -> tuple[AugmentedModel, Effect]:
+    """Creep around a model kept as it is (a model given to the diagnosis, fitted on other
+    data), from the drift of its free-run residual during input holds.
+
+    As :func:`_fit_creep` on holds, without its cross-fitting or refit: the given model was
+    fitted elsewhere, so its free run on (u, y) is out of sample already. The residual is
+    blanked where the model itself still moves in a hold (:func:`mask_model_settling`); tau and
+    gain come from :func:`fit_creep_on_holds`, and the block is the creep output term
+    ``y = z + c`` appended to ``model`` (same baseline object).
+
+    Raises ``ValueError`` when the record has fewer usable holds than the hold fit needs
+    (:data:`CREEP_HOLD_MIN_HOLDS`): without holds a creep is not told from path memory, and
+    around a given model nothing else could fit it without a refit.
+
+    Returns
+    -------
+    (AugmentedModel, Effect)
+        As :func:`fit_frozen_effect`; the effect also carries ``fit_residual_`` (the masked
+        residual, mm) and ``hold_fit_`` (the hold fit) for the diagnosis's hold test.
+    """
+    if "creep" in model.effect_names:
+        raise ValueError("the model already has the creep effect")
+    u = as_signal("u", u)
+    y = as_signal("y", y)
+    same_length(u=u, y=y)
+    dt = model.dt_s
+    L = model.max_lag_
+    if cache is None:
+        cache = FreeRunCache(model.baseline)
+    z = model.simulate(u, y[:L], cache=cache)
+    r = y - z
+    r[:L] = np.nan
+    r = mask_model_settling(r, drift_removed(model, z, np.arange(u.size) * dt), u, dt)
+    mem = max(L * dt, 2 * dt)
+    hold = fit_creep_on_holds(r, u, dt, creep_taus(dt, u.size * dt, mem, CREEP_HOLD_TAU_POINTS),
+                              nuisance_tau_s=mem)
+    if "tau_s" not in hold:
+        raise ValueError(f"no creep around the given model: {hold['holds']} usable input "
+                         f"hold(s), the hold fit needs {CREEP_HOLD_MIN_HOLDS}")
+    eff = Effect("creep", tau_s=hold["tau_s"], gain_mm_per_v=hold["gain_mm_per_v"])
+    eff.fit_residual_ = r
+    eff.hold_fit_ = hold
+    out = AugmentedModel(model.baseline, model.effects + [eff], dt)
+    eff.frozen_ = {"fit_rmse_mm": _rmse_after(out.simulate(u, y[:L], cache=cache), y, L),
+                   "fit_rmse_before_mm": _rmse_after(z, y, L)}
+    return out, eff
 
 
 def _fit_drift(model, narx, u, y, t, iterations):

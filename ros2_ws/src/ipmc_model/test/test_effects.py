@@ -19,6 +19,7 @@ from ipmc_model.effects import (
     drift_removed,
     fit_creep_on_holds,
     fit_effect,
+    fit_frozen_creep,
     fit_frozen_effect,
     load_augmented,
     mask_model_settling,
@@ -442,6 +443,35 @@ def test_creep_fit_on_plant_holds_is_near_the_truth(seed, tau_s, gain):
     assert tau_s / 1.5 <= eff.params["tau_s"] <= 1.5 * tau_s
     assert_allclose(eff.params["gain_mm_per_v"], gain, rtol=0.35)
     assert m.effect_names == ["creep"]
+
+
+def test_frozen_creep_is_fitted_on_the_hold_drift_around_a_fixed_model():
+    # a model identified on the clean plant's step record (the demo's kind: holds 0.5-5 s),
+    # then a later record of the plant with a creep: around the model kept as it is, the creep
+    # comes from the residual's drift during the holds (session 34)
+    _, u1 = random_steps(240, RATE, 2.5, seed=6)
+    base = AugmentedModel.identify(_narx(), u1, IpmcPlant(seed=6, dt_s=1 / RATE).run(u1).y_mm,
+                                   (), 1 / RATE)
+    fx = {"creep": {"tau_s": 15.0, "gain_mm_per_v": -0.2}}
+    _, u = random_steps(240, RATE, 2.5, seed=7)
+    y = IpmcPlant(effects=fx, seed=7, dt_s=1 / RATE).run(u).y_mm
+    m, eff = fit_frozen_creep(base, u, y)
+    assert m.baseline is base.baseline and m.effect_names == ["creep"]
+    assert eff.hold_fit_["holds"] >= 10
+    assert 15.0 / 1.5 <= eff.params["tau_s"] <= 1.5 * 15.0
+    assert_allclose(eff.params["gain_mm_per_v"], -0.2, rtol=0.35)
+    assert eff.frozen_["fit_rmse_mm"] < 0.95 * eff.frozen_["fit_rmse_before_mm"]
+    # the clean plant on the same input: the hold fit finds no creep of that size
+    y0 = IpmcPlant(seed=7, dt_s=1 / RATE).run(u).y_mm
+    _, eff0 = fit_frozen_creep(base, u, y0)
+    assert abs(eff0.params["gain_mm_per_v"]) < 0.25 * 0.2
+    # without input holds (a random sine) it is not fitted (the diagnosis then refits), nor
+    # around a model that has a creep already
+    _, us = random_sine(120, RATE, 2.5, (0.05, 1.0), 8, seed=7)
+    with pytest.raises(ValueError, match="usable input hold"):
+        fit_frozen_creep(base, us, IpmcPlant(effects=fx, seed=7, dt_s=1 / RATE).run(us).y_mm)
+    with pytest.raises(ValueError, match="already has the creep"):
+        fit_frozen_creep(m, u, y)
 
 
 def test_mask_model_settling_blanks_where_the_model_still_moves():
