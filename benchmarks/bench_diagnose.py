@@ -306,11 +306,11 @@ CREEP_MODEL_CASES = (
 
 
 def creepmodel(tmp, seeds=(0, 1, 2, 3)):
-    """Creep around a given model: day 1's baseline (120 s of :func:`plant_record` with input
-    holds, no effect found or not, its ``model_before``: the baseline without effects, as the
-    paper's LSSVM-NARX has none) given with --model to a later day's record of the same kind
-    (seed + 100). A model fitted on a creeping plant has no creep either: its 1.2 s window
-    cannot hold one, so the creep is still missing around it (session 34)."""
+    """Creep around a given model: day 1's baseline given with --model to a later day's record
+    of the same kind (seed + 100). Day 1 is 120 s of :func:`plant_record` with input holds;
+    its ``model_before`` is given, the baseline without effects whatever the diagnosis found
+    there, as the paper's LSSVM-NARX has none. A model fitted on a creeping plant lacks the
+    creep too: its 1.2 s window cannot hold one (session 34)."""
     print("120 s at 50 Hz, 0.6 x random sine + 1.5 V steps with input holds; day 1 seed S, "
           "day 2 seed S + 100")
     print("| day 1 -> day 2 plant | seed | found | fitted | held-out RMSE before -> after (mm) "

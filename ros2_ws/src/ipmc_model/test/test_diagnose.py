@@ -436,6 +436,27 @@ def test_a_creep_around_a_given_model_is_a_block_fitted_on_the_holds():
     assert not creep["hold_drift"]["significant"]
 
 
+def test_a_creep_block_that_fails_around_a_given_model_is_refitted_as_before():
+    """`bench_diagnose.py creepmodel 10` (session 34; seed 10 was used to design nothing
+    before): a model from a day on which the plant creeps strongly (12 s, -0.6 mm/V), given
+    to a later day of the same plant. The model holds a share of the creep's level, so the
+    block around it, fitted right on the holds, loses on the held-out part; the refit (the
+    rule before the block, twice the refit spread) passes and is kept."""
+    strong = {"creep": {"tau_s": 12.0, "gain_mm_per_v": -0.6}}
+    model = diagnose(*_plant(strong, seed=10, seconds=120.0, holds=True),
+                     candidates=()).model_before
+    d = diagnose(*_plant(strong, seed=110, seconds=120.0, holds=True), model=model)
+    assert d.effects_found == ["creep"]
+    ev = [c for c in d.candidates if c.accepted][0].evidence
+    assert ev["fit"] == "baseline refitted with the effect"
+    assert ev["improvement"] >= ev["threshold"] >= 2 * ev["refit_spread"]
+    block = ev["block_around_model"]
+    assert block["improvement"] < block["threshold"] and block["significant"]
+    assert block["params"]["tau_s"] == pytest.approx(12.0, rel=0.2)
+    assert "the block around the given model did not pass" in ev["text"]
+    assert len([c for c in d.candidates if c.effect == "creep"]) == 1
+
+
 def test_block_direction_is_the_side_or_the_sign():
     assert block_direction("asymmetry", {"negative_gain_ratio": 0.9}) == -1.0
     assert block_direction("asymmetry", {"negative_bending_ratio": 1.1}) == 1.0
