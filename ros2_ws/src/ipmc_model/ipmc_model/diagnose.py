@@ -494,8 +494,8 @@ def _bare_signature(current: AugmentedModel, eff, u, y, cut, free_cur):
 
 #: A creep fitted on the hold drift (:func:`~ipmc_model.effects.fit_creep_on_holds`) needs
 #: this share of ``threshold`` as held-out gain, with every row budget, paired (around a given
-#: model: as a block around it, nothing refitted; refitted without holds: and at least twice
-#: the refit spread).
+#: model: as a block around it, nothing refitted; refitted, with too few holds for the block
+#: or where the block failed: and at least twice the refit spread).
 CREEP_GAIN_SHARE = 0.5
 
 #: A saturation (fitted on the record or around a given model) is accepted only with its limit
@@ -1116,8 +1116,8 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
             # baseline refitted on the same rows (as for refit-free evidence). Not twice
             # the refit spread: a creep of minutes on long holds makes the baseline itself
             # unstable under refits (spread 11-24 %), which refused it at +16..29 %.
-            # Refitted around a given model (too few holds for the block) the gain also
-            # holds the refit's own gain: the spread.
+            # Refitted around a given model (too few holds for the block, or the block
+            # failed) the gain also holds the refit's own gain: the spread.
             need = (CREEP_GAIN_SHARE * threshold if paired_creep or frozen
                     else max(CREEP_GAIN_SHARE * threshold, 2.0 * spread))
         # a creep the record cannot test in time (too few holds) but whose signature
@@ -1340,9 +1340,10 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
             if (cand is not None and name == "creep" and not cand.passes
                     and cand.evidence["fit"].startswith("block")):
                 # Where the block around the given model fails, the refit (the rule before
-                # session 34, twice the refit spread) may still pass: a model fitted on a
-                # creeping day holds a share of the creep's level, which the block adds again
-                # (creepmodel, strong creep on both days: 4 of 24 lost without it).
+                # session 34, twice the refit spread) may still pass (creepmodel, strong
+                # creep on both days: 4 of 24 lost without it). Perhaps the model, fitted on
+                # a creeping day, holds a share of the creep's level that the block adds
+                # again; a static share in the block did not settle it (docs/diagnose.md).
                 alt = evaluate(name, rnd, current, ana_cur, rmse_cur, variants, spread,
                                refit_creep=True)
                 if alt is not None:
