@@ -987,6 +987,26 @@ def fit_creep_on_holds(r, u, dt_s: float, taus, *, nuisance_tau_s: float | None 
     return out
 
 
+def _creep_on_hold_drift(model: AugmentedModel, r, prediction, u, t):
+    """The creep fitted on the drift of the residual ``r`` (mm) during the input holds, where
+    the model's ``prediction`` (mm) has stopped moving (a rate channel or a drift keeps it
+    moving: :func:`mask_model_settling`, :func:`drift_removed`).
+
+    Returns (the masked residual, the hold fit of :func:`fit_creep_on_holds`, the creep
+    ``Effect`` with ``fit_residual_`` and ``hold_fit_``, or None with too few holds)."""
+    dt = model.dt_s
+    mem = max(model.max_lag_ * dt, 2 * dt)
+    r = mask_model_settling(r, drift_removed(model, prediction, t), u, dt)
+    hold = fit_creep_on_holds(r, u, dt, creep_taus(dt, u.size * dt, mem, CREEP_HOLD_TAU_POINTS),
+                              nuisance_tau_s=mem)
+    if "tau_s" not in hold:
+        return r, hold, None
+    eff = Effect("creep", tau_s=hold["tau_s"], gain_mm_per_v=hold["gain_mm_per_v"])
+    eff.fit_residual_ = r
+    eff.hold_fit_ = hold
+    return r, hold, eff
+
+
 def _fit_creep(model, narx, u, y, t, iterations):
     """Creep from the cross-fitted free-run residual r of the current structure (each half
     predicted by the structure refitted on the other half: the LSSVM has not absorbed the
@@ -1017,16 +1037,9 @@ def _fit_creep(model, narx, u, y, t, iterations):
     for s, e in find_holds(u, dt, CREEP_HOLD_SKIP_S + CREEP_HOLD_MIN_USE_S):
         if s < h < e:
             first_residual[s:e] = np.nan
-    # only where the current model has stopped moving (a rate channel keeps it moving)
-    first_residual = mask_model_settling(first_residual,
-                                         drift_removed(model, y - first_residual, t), u, dt)
-    hold = fit_creep_on_holds(first_residual, u, dt,
-                              creep_taus(dt, u.size * dt, mem, CREEP_HOLD_TAU_POINTS),
-                              nuisance_tau_s=mem)
-    if "tau_s" in hold:
-        eff = Effect("creep", tau_s=hold["tau_s"], gain_mm_per_v=hold["gain_mm_per_v"])
-        eff.fit_residual_ = first_residual
-        eff.hold_fit_ = hold
+    first_residual, hold, eff = _creep_on_hold_drift(model, first_residual,
+                                                     y - first_residual, u, t)
+    if eff is not None:
         return model.refit(narx, u, y, model.effects + [eff]), eff
     nuis = _creep_basis(u, dt, mem)
     taus = creep_taus(dt, u.size * dt, mem)
@@ -1086,16 +1099,10 @@ def fit_frozen_creep(model: AugmentedModel, u, y, *,
     z = model.simulate(u, y[:L], cache=cache)
     r = y - z
     r[:L] = np.nan
-    r = mask_model_settling(r, drift_removed(model, z, np.arange(u.size) * dt), u, dt)
-    mem = max(L * dt, 2 * dt)
-    hold = fit_creep_on_holds(r, u, dt, creep_taus(dt, u.size * dt, mem, CREEP_HOLD_TAU_POINTS),
-                              nuisance_tau_s=mem)
-    if "tau_s" not in hold:
+    _, hold, eff = _creep_on_hold_drift(model, r, z, u, np.arange(u.size) * dt)
+    if eff is None:
         raise ValueError(f"no creep around the given model: {hold['holds']} usable input "
                          f"hold(s), the hold fit needs {CREEP_HOLD_MIN_HOLDS}")
-    eff = Effect("creep", tau_s=hold["tau_s"], gain_mm_per_v=hold["gain_mm_per_v"])
-    eff.fit_residual_ = r
-    eff.hold_fit_ = hold
     out = AugmentedModel(model.baseline, model.effects + [eff], dt)
     eff.frozen_ = {"fit_rmse_mm": _rmse_after(out.simulate(u, y[:L], cache=cache), y, L),
                    "fit_rmse_before_mm": _rmse_after(z, y, L)}
