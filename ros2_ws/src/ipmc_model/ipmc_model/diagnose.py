@@ -67,8 +67,12 @@ Procedure (:func:`diagnose`):
    the creep's share of ``threshold``; where it fails, the creep is refitted as the other
    candidates are (session 34). The other candidates refit the baseline,
    which against a model from another day gains by itself, so they need twice the refit spread
-   too. (A baseline identified on the record itself has absorbed any static input or output map:
-   a nonlinear FIR represents dead_zone(u) or tanh(z) through its own inputs; docs/diagnose.md.)
+   too. Where the record's input leaves the voltages the given model was identified on
+   (:func:`model_coverage`), every candidate must also gain ``need`` on the held-out samples
+   whose lag window stays within them: beyond, the model extrapolates, and a block can gain
+   by bending the extrapolation (session 35). (A baseline identified on the record itself
+   has absorbed any static input or output map: a nonlinear FIR represents dead_zone(u) or
+   tanh(z) through its own inputs; docs/diagnose.md.)
 """
 
 from __future__ import annotations
@@ -472,6 +476,80 @@ def input_shift(u_fit, u_held, rate_hz: float) -> dict:
     return {"bandwidth_fit_hz": bf, "bandwidth_held_hz": bh, "hold_share_fit": hf,
             "hold_share_held": hh, "range_fit_v": [lo, hi], "range_held_v": [lo_h, hi_h],
             "beyond_range_share": share, "shifted": shifted, "text": text}
+
+
+#: Tolerance of :func:`model_coverage`, as a share of the span of the voltages a given model
+#: was identified on: its regressor rows are a sample of the fit rows, whose extremes may
+#: fall between two of them.
+COVERAGE_TOLERANCE_SHARE = 0.02
+
+
+def model_input_range(model: AugmentedModel) -> tuple[float, float] | None:
+    """The voltages (V, after the model's input effects) its baseline was identified on: the
+    range of the voltage channel over every lag of its LSSVM's regressor rows (a committee:
+    over every member), or None for a regressor without stored rows."""
+    lo, hi = np.inf, -np.inf
+    for b in members_of(model.baseline):
+        centers = getattr(b.regressor_, "centers_", None)
+        if (centers is None or not b.in_delays_ or len(b.in_delays_[0]) == 0
+                or not b.include_voltage):  # its first channel is then a low-passed one
+            return None
+        v = centers[:, :len(b.in_delays_[0])] * b.u_scale_[0] + b.u_mean_[0]
+        lo, hi = min(lo, float(v.min())), max(hi, float(v.max()))
+    return (lo, hi) if np.isfinite(lo) and hi > lo else None
+
+
+def model_coverage(model: AugmentedModel, u, cut: int) -> dict | None:
+    """Where the record's input stays within the voltages a given model was identified on
+    (:func:`model_input_range`, :data:`COVERAGE_TOLERANCE_SHARE`): ``held_in`` marks the
+    held-out samples (after the model's lag window, as the residuals) whose whole lag window
+    does. Beyond them the model extrapolates, and a block can gain by bending that
+    extrapolation (a clean later day's input went 0.6 V below the model's: a 5.1 mm
+    saturation gained 20 % on the held-out part, -1.4 % within the model's range; docs/
+    diagnose.md, session 35). None without a range."""
+    rng = model_input_range(model)
+    if rng is None:
+        return None
+    lo, hi = rng
+    tol = COVERAGE_TOLERANCE_SHARE * (hi - lo)
+    v, _ = model.to_baseline_space(u)
+    v = np.asarray(v, float)
+    v = v[:, 0] if v.ndim == 2 else v
+    inside = (v >= lo - tol) & (v <= hi + tol)
+    L = model.max_lag_
+    # a sample is covered when no sample of its window (k - L .. k) lies outside
+    outside = np.convolve((~inside).astype(float), np.ones(L + 1), mode="full")[:v.size] > 0
+    held_in = ~outside[cut:][L:]
+    share = float(held_in.mean()) if held_in.size else 0.0
+    beyond = max(float(v.max()) - hi, lo - float(v.min()), 0.0)
+    text = (f"the given model was identified on {lo:.3g} to {hi:.3g} V; the record goes "
+            f"{beyond:.3g} V beyond, and {100 * share:.0f} % of the held-out part "
+            "stays within")
+    return {"range_v": [lo, hi], "record_range_v": [float(v.min()), float(v.max())],
+            "held_in": held_in, "held_in_share": share, "beyond": bool(share < 1.0),
+            "text": text}
+
+
+#: Least share of the held-out part within a given model's input range for the gain there
+#: to be measured (:func:`_covered_gain`); below it no effect can pass.
+COVERAGE_MIN_SHARE = 0.2
+
+
+def _covered_gain(coverage: dict, e_new_full, e_cur, L: int) -> float | None:
+    """Relative held-out free-run RMSE gain on the samples within the given model's input
+    range (:func:`model_coverage`): ``e_new_full`` the candidate's held-out residual from the
+    part's start, ``e_cur`` the current model's from the lag window on. None when it cannot be
+    measured: too few samples within (:data:`COVERAGE_MIN_SHARE`), or residuals not finite."""
+    keep = coverage["held_in"]
+    e_new = np.asarray(e_new_full, float)[L:]
+    if (keep.size != e_new.size or keep.size != np.asarray(e_cur).size
+            or keep.mean() < COVERAGE_MIN_SHARE):
+        return None
+    a, b = e_new[keep], np.asarray(e_cur, float)[keep]
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        return None
+    r_cur = float(np.sqrt(np.mean(b * b)))
+    return 1.0 - float(np.sqrt(np.mean(a * a))) / r_cur if r_cur > 0 else 0.0
 
 
 def _held_out(model: AugmentedModel, u, y, cut):
@@ -914,6 +992,14 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
     shift = input_shift(uf, u[cut:], rate)
     if shift["shifted"]:
         say(shift["text"])
+    coverage = model_coverage(model, u, cut) if model is not None else None
+    if coverage is not None and coverage["beyond"]:
+        coverage["text"] = ("WARNING: " + coverage["text"] + ": beyond, the model "
+                            "extrapolates, and an effect must also gain within its range ("
+                            + ("" if coverage["held_in_share"] >= COVERAGE_MIN_SHARE else
+                               "too little of the held-out part for that, so none can; ")
+                            + "give a model identified on the record's range of voltages)")
+        say(coverage["text"])
     ana_before = analyse(before, u, y, cut)
     rmse_before = ana_before["rmse_free_mm"]
     say(f"baseline: held-out free-run RMSE {rmse_before:.4f} mm, one-step "
@@ -1140,7 +1226,10 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
             # in time (stale seed 7: an asymmetry 0.96 beside the saturation, fitted best
             # without it on the first half; seed 1: a 0.06 V dead zone for a drift).
             half, half_text = half_gains(current, name, rmse_cur)
-        gains = [gain] + paired + half
+        inside = []  # within the given model's input range (model_coverage); None: untested
+        if coverage is not None and coverage["beyond"]:
+            inside = [_covered_gain(coverage, y[cut:] - free, e_cur, L)]
+        gains = [gain] + paired + half + [-1.0 if g is None else g for g in inside]
         change = (free - ana_cur["free_run"])[L:]
         contribution = (float(np.sqrt(np.mean(change ** 2))) if np.all(np.isfinite(change))
                         else 0.0)
@@ -1154,6 +1243,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
               "improvement": gain, "threshold": need, "refit_spread": spread,
               "paired_improvements": paired,
               **({"half_improvements": half} if halves else {}),
+              **({"improvement_in_model_range": inside[0]} if inside else {}),
               "contribution_mm": contribution, "noise_floor_mm": floor_mm,
               "material": bool(material),
               "fit": ("block around the given model, not refitted" if frozen
@@ -1190,6 +1280,10 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                   if paired else "")
         if halves:
             checks = f"; fitted on either half of the fit part {', '.join(half_text)}"
+        if inside:
+            checks += (f"; within the given model's input range "
+                       f"({100 * coverage['held_in_share']:.0f} % of the held-out part) "
+                       + ("untested" if inside[0] is None else f"{100 * inside[0]:+.1f} %"))
         ev["text"] = ((f"{how}, beside {beside}: " if beside else "")
                       + ("block around the given model (not refitted): " if frozen else "")
                       + f"{test['text']}; held-out free-run RMSE "
@@ -1437,7 +1531,8 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
         sat[-1].evidence["in_data"] = scan["significant"]
     d = Diagnosis(before, current, rmse_before, rmse_cur, evaluated, found, ana_before,
                   ana_cur, t, u, y, cut, tuning, threshold, time.perf_counter() - t0_wall,
-                  notes=[shift["text"]])
+                  notes=[shift["text"]] + ([coverage["text"]] if coverage is not None
+                                           and coverage["beyond"] else []))
     for head, effect, tail, text in _statements(d):
         say(f"{head}: {effect}{tail} ({text}")
     return d

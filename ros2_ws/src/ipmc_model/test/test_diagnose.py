@@ -27,6 +27,8 @@ from ipmc_model.diagnose import (
     diagnose,
     hysteresis_memory,
     input_shift,
+    model_coverage,
+    model_input_range,
 )
 from ipmc_model.diagnose_cli import main
 
@@ -455,6 +457,55 @@ def test_a_creep_block_that_fails_around_a_given_model_is_refitted_as_before():
     assert block["params"]["tau_s"] == pytest.approx(12.0, rel=0.2)
     assert "the block around the given model did not pass" in ev["text"]
     assert len([c for c in d.candidates if c.effect == "creep"]) == 1
+
+
+def _fitted_on(u, rate=RATE):
+    """An AugmentedModel whose baseline (12 input lags, step 5) is fitted on input ``u`` (V)
+    and a smooth response of it (mm)."""
+    from ipmc_model.effects import AugmentedModel
+    from ipmc_model.lssvm import LSSVMRegressor
+    from ipmc_model.narx import NarxModel
+
+    y = np.convolve(np.tanh(u), np.full(10, 0.2), mode="full")[:u.size]
+    narx = NarxModel(LSSVMRegressor(C=1000.0, sigma=3.0), input_lags=12, output_lags=0,
+                     lag_step=5, max_rows=800)
+    return AugmentedModel.identify(narx, u, y, (), 1 / rate)
+
+
+def test_model_coverage_marks_the_samples_whose_window_leaves_the_models_voltages():
+    rng = np.random.default_rng(0)
+    u1 = np.clip(np.cumsum(rng.normal(0, 0.05, 3000)), -1.0, 2.0)
+    u1[:200], u1[200:400] = -1.0, 2.0  # the range's ends are held, so the rows sample them
+    model = _fitted_on(u1)
+    lo, hi = model_input_range(model)
+    assert lo == pytest.approx(-1.0, abs=1e-9) and hi == pytest.approx(2.0, abs=1e-9)
+    u2 = np.clip(np.cumsum(rng.normal(0, 0.05, 1000)), -0.9, 1.9)
+    u2[850:870] = -1.5  # beyond, in the held-out part
+    cut, L = 700, model.max_lag_
+    cov = model_coverage(model, u2, cut)
+    assert cov["beyond"] and cov["range_v"] == pytest.approx([-1.0, 2.0])
+    out = np.flatnonzero(~cov["held_in"]) + cut + L  # record index of each uncovered sample
+    # uncovered: from the first sample beyond to the last one's window end, nothing else
+    assert out[0] == 850 and out[-1] == 869 + L and out.size == 20 + L
+    assert cov["held_in_share"] == pytest.approx(1 - (20 + L) / (1000 - cut - L))
+    assert "0.5 V beyond, and 67 % of the held-out part stays within" in cov["text"]
+    inside = model_coverage(model, np.clip(u2, -0.9, 1.9), cut)
+    assert not inside["beyond"] and inside["held_in"].all()
+
+
+def test_a_block_that_gains_only_where_a_given_model_extrapolates_is_not_accepted():
+    """`bench_diagnose.py creepmodel 6` (session 35): a clean day's model, identified on
+    -1.80..2.45 V, given to a clean later day whose input reaches -2.39 V. A 5.1 mm saturation
+    gained 20.2 % on the held-out part and was accepted; within the model's voltages, where it
+    does not extrapolate, it gains 4.2 %. Now an effect must gain there too: nothing found."""
+    model = diagnose(*_plant({}, seed=6, seconds=120.0, holds=True),
+                     candidates=()).model_before
+    d = diagnose(*_plant({}, seed=106, seconds=120.0, holds=True), model=model)
+    assert d.effects_found == []
+    assert any(n.startswith("WARNING: the given model was identified on") for n in d.notes)
+    sat = [c.evidence for c in d.candidates if c.effect == "saturation"][0]
+    assert sat["improvement"] >= sat["threshold"] > sat["improvement_in_model_range"]
+    assert "within the given model's input range" in sat["text"]
 
 
 def test_block_direction_is_the_side_or_the_sign():
