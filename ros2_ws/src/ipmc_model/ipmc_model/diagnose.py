@@ -505,7 +505,7 @@ def model_coverage(model: AugmentedModel, u, cut: int) -> dict | None:
     held-out samples (after the model's lag window, as the residuals) whose whole lag window
     does. Beyond them the model extrapolates, and a block can gain by bending that
     extrapolation (a clean later day's input went 0.6 V below the model's: a 5.1 mm
-    saturation gained 20 % on the held-out part, -1.4 % within the model's range; docs/
+    saturation gained 20 % on the held-out part, 4.2 % within the model's range; docs/
     diagnose.md, session 35). None without a range."""
     rng = model_input_range(model)
     if rng is None:
@@ -526,8 +526,7 @@ def model_coverage(model: AugmentedModel, u, cut: int) -> dict | None:
             f"{beyond:.3g} V beyond, and {100 * share:.0f} % of the held-out part "
             "stays within")
     return {"range_v": [lo, hi], "record_range_v": [float(v.min()), float(v.max())],
-            "held_in": held_in, "held_in_share": share, "beyond": bool(share < 1.0),
-            "text": text}
+            "held_in": held_in, "held_in_share": share, "text": text}
 
 
 #: Least share of the held-out part within a given model's input range for the gain there
@@ -993,7 +992,9 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
     if shift["shifted"]:
         say(shift["text"])
     coverage = model_coverage(model, u, cut) if model is not None else None
-    if coverage is not None and coverage["beyond"]:
+    if coverage is not None and coverage["held_in_share"] == 1.0:
+        coverage = None  # the held-out part stays within the given model's voltages
+    if coverage is not None:
         coverage["text"] = ("WARNING: " + coverage["text"] + ": beyond, the model "
                             "extrapolates, and an effect must also gain within its range ("
                             + ("" if coverage["held_in_share"] >= COVERAGE_MIN_SHARE else
@@ -1227,7 +1228,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
             # without it on the first half; seed 1: a 0.06 V dead zone for a drift).
             half, half_text = half_gains(current, name, rmse_cur)
         inside = []  # within the given model's input range (model_coverage); None: untested
-        if coverage is not None and coverage["beyond"]:
+        if coverage is not None:
             inside = [_covered_gain(coverage, y[cut:] - free, e_cur, L)]
         gains = [gain] + paired + half + [-1.0 if g is None else g for g in inside]
         change = (free - ana_cur["free_run"])[L:]
@@ -1531,8 +1532,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
         sat[-1].evidence["in_data"] = scan["significant"]
     d = Diagnosis(before, current, rmse_before, rmse_cur, evaluated, found, ana_before,
                   ana_cur, t, u, y, cut, tuning, threshold, time.perf_counter() - t0_wall,
-                  notes=[shift["text"]] + ([coverage["text"]] if coverage is not None
-                                           and coverage["beyond"] else []))
+                  notes=[shift["text"]] + ([coverage["text"]] if coverage is not None else []))
     for head, effect, tail, text in _statements(d):
         say(f"{head}: {effect}{tail} ({text}")
     return d

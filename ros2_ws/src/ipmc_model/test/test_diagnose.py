@@ -483,14 +483,14 @@ def test_model_coverage_marks_the_samples_whose_window_leaves_the_models_voltage
     u2[850:870] = -1.5  # beyond, in the held-out part
     cut, L = 700, model.max_lag_
     cov = model_coverage(model, u2, cut)
-    assert cov["beyond"] and cov["range_v"] == pytest.approx([-1.0, 2.0])
+    assert cov["range_v"] == pytest.approx([-1.0, 2.0])
     out = np.flatnonzero(~cov["held_in"]) + cut + L  # record index of each uncovered sample
     # uncovered: from the first sample beyond to the last one's window end, nothing else
     assert out[0] == 850 and out[-1] == 869 + L and out.size == 20 + L
     assert cov["held_in_share"] == pytest.approx(1 - (20 + L) / (1000 - cut - L))
     assert "0.5 V beyond, and 67 % of the held-out part stays within" in cov["text"]
     inside = model_coverage(model, np.clip(u2, -0.9, 1.9), cut)
-    assert not inside["beyond"] and inside["held_in"].all()
+    assert inside["held_in"].all() and inside["held_in_share"] == 1.0
 
 
 def test_a_block_that_gains_only_where_a_given_model_extrapolates_is_not_accepted():
