@@ -506,7 +506,8 @@ def model_coverage(model: AugmentedModel, u, cut: int) -> dict | None:
     does. Beyond them the model extrapolates, and a block can gain by bending that
     extrapolation (a clean later day's input went 0.6 V below the model's: a 5.1 mm
     saturation gained 20 % on the held-out part, 4.2 % within the model's range; docs/
-    diagnose.md, session 35). None without a range."""
+    diagnose.md, session 35). Returns ``range_v`` (the model's, V), ``held_in``,
+    ``held_in_share`` and ``text``; None without a range."""
     rng = model_input_range(model)
     if rng is None:
         return None
@@ -525,8 +526,7 @@ def model_coverage(model: AugmentedModel, u, cut: int) -> dict | None:
     text = (f"the given model was identified on {lo:.3g} to {hi:.3g} V; the record goes "
             f"{beyond:.3g} V beyond, and {100 * share:.0f} % of the held-out part "
             "stays within")
-    return {"range_v": [lo, hi], "record_range_v": [float(v.min()), float(v.max())],
-            "held_in": held_in, "held_in_share": share, "text": text}
+    return {"range_v": [lo, hi], "held_in": held_in, "held_in_share": share, "text": text}
 
 
 #: Least share of the held-out part within a given model's input range for the gain there
