@@ -70,9 +70,11 @@ Procedure (:func:`diagnose`):
    too. Where the record's input leaves the voltages the given model was identified on
    (:func:`model_coverage`), every candidate must also gain ``need`` on the held-out samples
    whose lag window stays within them: beyond, the model extrapolates, and a block can gain
-   by bending the extrapolation (session 35). (A baseline identified on the record itself
-   has absorbed any static input or output map: a nonlinear FIR represents dead_zone(u) or
-   tanh(z) through its own inputs; docs/diagnose.md.)
+   by bending the extrapolation (session 35). So too where its regressor rows are sparse
+   (:func:`model_support`): there an RBF model falls back towards its mean, and a block can
+   gain by correcting that, within its voltages (session 36). (A baseline identified on the
+   record itself has absorbed any static input or output map: a nonlinear FIR represents
+   dead_zone(u) or tanh(z) through its own inputs; docs/diagnose.md.)
 """
 
 from __future__ import annotations
@@ -106,7 +108,7 @@ from .effects import (
     saturation_test,
     save_augmented,
 )
-from .lssvm import LSSVMRegressor
+from .lssvm import LSSVMRegressor, rbf_kernel
 from .narx import FreeRunCache, InverseNarxModel, NarxCommittee, NarxModel, members_of
 from .persistence import save_model
 from .residuals import (
@@ -533,10 +535,62 @@ def model_coverage(model: AugmentedModel, u, cut: int) -> dict | None:
 #: to be measured (:func:`_covered_gain`); below it no effect can pass.
 COVERAGE_MIN_SHARE = 0.2
 
+#: Share of a given model's own regressor rows whose kernel density bounds its support
+#: (:func:`model_support`): a held-out row sparser than all but this share of them is where
+#: the model saw too little to be trusted, as a 95 % highest-density region.
+SUPPORT_QUANTILE = 0.05
+
+
+def _kernel_density(X: np.ndarray, centers: np.ndarray, sigma: float,
+                    block: int = 1024) -> np.ndarray:
+    """Mean RBF kernel of each row of ``X`` over ``centers`` (the model's own width), in
+    blocks of rows to bound the memory."""
+    out = np.empty(X.shape[0])
+    for s in range(0, X.shape[0], block):
+        out[s:s + block] = rbf_kernel(X[s:s + block], centers, sigma).mean(axis=1)
+    return out
+
+
+def model_support(model: AugmentedModel, u, y, cut: int) -> dict | None:
+    """Where a given model has data: ``supported`` marks the held-out samples (after the
+    model's lag window, as the residuals) whose regressor row has, in every member of its
+    baseline, at least the kernel density (the mean of its RBF kernel over its stored rows)
+    that all but :data:`SUPPORT_QUANTILE` of those rows have. Away from its rows an RBF
+    LSSVM falls back towards its mean, and a block can gain by correcting that, not a change
+    of the plant, even within the model's voltages (a clean later day of `creepmodel 13`: an
+    asymmetry 1.21 gained 14.4 % held out, all of it on the 1.3 % of samples sparser than
+    that, -8.5 % on the rest; docs/diagnose.md, session 36). Output lags take the measured
+    output. Returns ``supported``, ``supported_share`` and ``text``; None for a regressor
+    without stored rows."""
+    u = np.asarray(u, float)
+    v, z = model.to_baseline_space(u, y)
+    L = model.max_lag_
+    n_held = u.size - cut - L
+    if n_held <= 0:
+        return None
+    supported = np.ones(n_held, bool)
+    for b in members_of(model.baseline):
+        reg = b.regressor_
+        centers, sigma = getattr(reg, "centers_", None), getattr(reg, "sigma_", None)
+        if centers is None or sigma is None:
+            return None
+        rows = b._rows(b.input_channels(v), z)  # row i is sample i + b.max_lag_
+        start = cut + L - b.max_lag_
+        dens = _kernel_density(rows[start:start + n_held], centers, float(sigma))
+        floor = float(np.quantile(_kernel_density(centers, centers, float(sigma)),
+                                  SUPPORT_QUANTILE))
+        supported &= dens >= floor
+    share = float(supported.mean())
+    text = (f"{100 * (1 - share):.0f} % of the held-out part lies where the given model's "
+            f"rows are sparser than all but {100 * SUPPORT_QUANTILE:.0f} % of them (its "
+            "kernel density)")
+    return {"supported": supported, "supported_share": share, "text": text}
+
 
 def _covered_gain(coverage: dict, e_new_full, e_cur, L: int) -> float | None:
-    """Relative held-out free-run RMSE gain on the samples within the given model's input
-    range (:func:`model_coverage`): ``e_new_full`` the candidate's held-out residual from the
+    """Relative held-out free-run RMSE gain on the samples where the given model has data
+    (``held_in``: within its input range, :func:`model_coverage`, and its rows' support,
+    :func:`model_support`): ``e_new_full`` the candidate's held-out residual from the
     part's start, ``e_cur`` the current model's from the lag window on. None when it cannot be
     measured: too few samples within (:data:`COVERAGE_MIN_SHARE`), or residuals not finite."""
     keep = coverage["held_in"]
@@ -1001,6 +1055,20 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                                "too little of the held-out part for that, so none can; ")
                             + "give a model identified on the record's range of voltages)")
         say(coverage["text"])
+    support = model_support(model, u, y, cut) if model is not None else None
+    if support is not None and support["supported_share"] < 1.0:
+        held_in = support["supported"] & (coverage["held_in"] if coverage is not None else True)
+        support["text"] += ("; an effect must also gain on the rest"
+                            + ("" if held_in.mean() >= COVERAGE_MIN_SHARE else
+                               " (too little is left for that, so none can: give a model "
+                               "identified on the record's kind of input)"))
+        say(support["text"])
+        # one mask for every candidate: within the model's voltages and where it has rows
+        coverage = {"held_in": held_in, "held_in_share": float(held_in.mean()),
+                    "texts": ([coverage["text"]] if coverage is not None else [])
+                    + [support["text"]]}
+    elif coverage is not None:
+        coverage["texts"] = [coverage["text"]]
     ana_before = analyse(before, u, y, cut)
     rmse_before = ana_before["rmse_free_mm"]
     say(f"baseline: held-out free-run RMSE {rmse_before:.4f} mm, one-step "
@@ -1227,7 +1295,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
             # in time (stale seed 7: an asymmetry 0.96 beside the saturation, fitted best
             # without it on the first half; seed 1: a 0.06 V dead zone for a drift).
             half, half_text = half_gains(current, name, rmse_cur)
-        inside = []  # within the given model's input range (model_coverage); None: untested
+        inside = []  # where the given model has data (model_coverage, model_support)
         if coverage is not None:
             inside = [_covered_gain(coverage, y[cut:] - free, e_cur, L)]
         gains = [gain] + paired + half + [-1.0 if g is None else g for g in inside]
@@ -1282,7 +1350,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
         if halves:
             checks = f"; fitted on either half of the fit part {', '.join(half_text)}"
         if inside:
-            checks += (f"; within the given model's input range "
+            checks += (f"; where the given model has data "
                        f"({100 * coverage['held_in_share']:.0f} % of the held-out part) "
                        + ("untested" if inside[0] is None else f"{100 * inside[0]:+.1f} %"))
         ev["text"] = ((f"{how}, beside {beside}: " if beside else "")
@@ -1532,7 +1600,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
         sat[-1].evidence["in_data"] = scan["significant"]
     d = Diagnosis(before, current, rmse_before, rmse_cur, evaluated, found, ana_before,
                   ana_cur, t, u, y, cut, tuning, threshold, time.perf_counter() - t0_wall,
-                  notes=[shift["text"]] + ([coverage["text"]] if coverage is not None else []))
+                  notes=[shift["text"]] + (coverage["texts"] if coverage is not None else []))
     for head, effect, tail, text in _statements(d):
         say(f"{head}: {effect}{tail} ({text}")
     return d

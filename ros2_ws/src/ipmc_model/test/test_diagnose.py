@@ -29,6 +29,7 @@ from ipmc_model.diagnose import (
     input_shift,
     model_coverage,
     model_input_range,
+    model_support,
 )
 from ipmc_model.diagnose_cli import main
 
@@ -505,7 +506,43 @@ def test_a_block_that_gains_only_where_a_given_model_extrapolates_is_not_accepte
     assert any(n.startswith("WARNING: the given model was identified on") for n in d.notes)
     sat = [c.evidence for c in d.candidates if c.effect == "saturation"][0]
     assert sat["improvement"] >= sat["threshold"] > sat["improvement_in_model_range"]
-    assert "within the given model's input range" in sat["text"]
+    assert "where the given model has data" in sat["text"]
+
+
+def test_model_support_marks_the_rows_the_model_saw_too_little_of_within_its_voltages():
+    """A stretch of the held-out input that alternates between two voltages within the
+    model's range, at a rate it never saw: its voltages are covered, its lag windows are not."""
+    u1 = _input(120.0, seed=2)
+    model = _fitted_on(u1)
+    u2 = _input(40.0, seed=3)
+    u2[1700:1740] = np.where(np.arange(40) % 2, u1.min() + 0.2, u1.max() - 0.2)
+    y2 = np.convolve(np.tanh(u2), np.full(10, 0.2), mode="full")[:u2.size]
+    cut, L = 1200, model.max_lag_
+    assert model_coverage(model, u2, cut)["held_in_share"] == 1.0  # the voltages: all within
+    sup = model_support(model, u2, y2, cut)
+    at = np.arange(sup["supported"].size) + cut + L  # record index of each held-out sample
+    # every window (13 lags, 5 samples apart) holding 4 or more alternating samples lies
+    # outside the model's rows
+    assert L == 60
+    assert not sup["supported"][(at >= 1715) & (at < 1785)].any()
+    # most of the ordinary input does not (5 % of the model's own rows would not either)
+    assert sup["supported"][at < 1700].mean() > 0.8
+    assert f"{100 * (1 - sup['supported_share']):.0f} % of the held-out part" in sup["text"]
+
+
+def test_a_block_that_gains_only_where_a_given_model_saw_little_is_not_accepted():
+    """`bench_diagnose.py creepmodel 13` (session 36): a clean day's model given to a clean
+    later day within its voltages. An asymmetry 1.21 gained 14.4 % held out, both halves of
+    the fit part passing, and was accepted; all of its gain was on the 1.3 % of the held-out
+    samples where the model's rows are sparse (-8.5 % on the rest). Now nothing is found."""
+    model = diagnose(*_plant({}, seed=13, seconds=120.0, holds=True),
+                     candidates=()).model_before
+    d = diagnose(*_plant({}, seed=113, seconds=120.0, holds=True), model=model)
+    assert d.effects_found == []
+    assert not any(n.startswith("WARNING") for n in d.notes)  # no voltage beyond the model's
+    asym = [c.evidence for c in d.candidates if c.effect == "asymmetry"][0]
+    assert asym["improvement"] >= asym["threshold"] > asym["improvement_in_model_range"]
+    assert asym["half_improvements"] and min(asym["half_improvements"]) >= asym["threshold"]
 
 
 def test_block_direction_is_the_side_or_the_sign():
