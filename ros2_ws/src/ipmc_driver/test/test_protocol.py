@@ -312,13 +312,13 @@ def test_decoder_mixed_stream_returns_exactly_the_good_frames(pieces, chunk):
             bad[piece[2] // 8] ^= 1 << (piece[2] % 8)
             stream += bad
         else:
-            truncated.append((len(stream), piece[1]))
+            truncated.append(len(stream))
             stream += sample_frame(piece[1])[: piece[2]]
     # A truncated frame whose next bytes make a frame with a valid CRC is a good frame to any
     # decoder: its missing tail itself (found: 16 bytes, then the garbage byte 0xe0 that was its
     # last CRC byte), or other bytes that CRC-16 cannot tell from it, 1 in 65 536 (found: 14
     # bytes, then the next frame's first 3 bytes).
-    for start, _ in truncated:
+    for start in truncated:
         counter = _whole_sample(stream[start : start + SAMPLE_FRAME_LEN])
         if counter is not None:
             # its tail taken from the next good frame would break that one: left out (rare)

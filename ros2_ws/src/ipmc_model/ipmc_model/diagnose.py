@@ -1048,27 +1048,25 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
     coverage = model_coverage(model, u, cut) if model is not None else None
     if coverage is not None and coverage["held_in_share"] == 1.0:
         coverage = None  # the held-out part stays within the given model's voltages
+    model_notes = []  # what the report says about where the given model has data
     if coverage is not None:
-        coverage["text"] = ("WARNING: " + coverage["text"] + ": beyond, the model "
-                            "extrapolates, and an effect must also gain within its range ("
-                            + ("" if coverage["held_in_share"] >= COVERAGE_MIN_SHARE else
-                               "too little of the held-out part for that, so none can; ")
-                            + "give a model identified on the record's range of voltages)")
-        say(coverage["text"])
+        model_notes.append(
+            "WARNING: " + coverage["text"] + ": beyond, the model extrapolates, and an effect "
+            "must also gain within its range ("
+            + ("" if coverage["held_in_share"] >= COVERAGE_MIN_SHARE else
+               "too little of the held-out part for that, so none can; ")
+            + "give a model identified on the record's range of voltages)")
+        say(model_notes[-1])
     support = model_support(model, u, y, cut) if model is not None else None
     if support is not None and support["supported_share"] < 1.0:
         held_in = support["supported"] & (coverage["held_in"] if coverage is not None else True)
-        support["text"] += ("; an effect must also gain on the rest"
-                            + ("" if held_in.mean() >= COVERAGE_MIN_SHARE else
-                               " (too little is left for that, so none can: give a model "
-                               "identified on the record's kind of input)"))
-        say(support["text"])
+        model_notes.append(support["text"] + "; an effect must also gain on the rest"
+                           + ("" if held_in.mean() >= COVERAGE_MIN_SHARE else
+                              " (too little is left for that, so none can: give a model "
+                              "identified on the record's kind of input)"))
+        say(model_notes[-1])
         # one mask for every candidate: within the model's voltages and where it has rows
-        coverage = {"held_in": held_in, "held_in_share": float(held_in.mean()),
-                    "texts": ([coverage["text"]] if coverage is not None else [])
-                    + [support["text"]]}
-    elif coverage is not None:
-        coverage["texts"] = [coverage["text"]]
+        coverage = {"held_in": held_in, "held_in_share": float(held_in.mean())}
     ana_before = analyse(before, u, y, cut)
     rmse_before = ana_before["rmse_free_mm"]
     say(f"baseline: held-out free-run RMSE {rmse_before:.4f} mm, one-step "
@@ -1600,7 +1598,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
         sat[-1].evidence["in_data"] = scan["significant"]
     d = Diagnosis(before, current, rmse_before, rmse_cur, evaluated, found, ana_before,
                   ana_cur, t, u, y, cut, tuning, threshold, time.perf_counter() - t0_wall,
-                  notes=[shift["text"]] + (coverage["texts"] if coverage is not None else []))
+                  notes=[shift["text"]] + model_notes)
     for head, effect, tail, text in _statements(d):
         say(f"{head}: {effect}{tail} ({text}")
     return d
