@@ -587,13 +587,13 @@ def model_support(model: AugmentedModel, u, y, cut: int) -> dict | None:
     return {"supported": supported, "supported_share": share, "text": text}
 
 
-def _covered_gain(coverage: dict, e_new_full, e_cur, L: int) -> float | None:
+def _covered_gain(within: dict, e_new_full, e_cur, L: int) -> float | None:
     """Relative held-out free-run RMSE gain on the samples where the given model has data
     (``held_in``: within its input range, :func:`model_coverage`, and its rows' support,
     :func:`model_support`): ``e_new_full`` the candidate's held-out residual from the
     part's start, ``e_cur`` the current model's from the lag window on. None when it cannot be
     measured: too few samples within (:data:`COVERAGE_MIN_SHARE`), or residuals not finite."""
-    keep = coverage["held_in"]
+    keep = within["held_in"]
     e_new = np.asarray(e_new_full, float)[L:]
     if (keep.size != e_new.size or keep.size != np.asarray(e_cur).size
             or keep.mean() < COVERAGE_MIN_SHARE):
@@ -1057,16 +1057,18 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
                "too little of the held-out part for that, so none can; ")
             + "give a model identified on the record's range of voltages)")
         say(model_notes[-1])
+    # the held-out samples where the given model has data, one mask for every candidate:
+    # within its voltages and where its rows are dense (None: all of them)
+    within = coverage
     support = model_support(model, u, y, cut) if model is not None else None
     if support is not None and support["supported_share"] < 1.0:
         held_in = support["supported"] & (coverage["held_in"] if coverage is not None else True)
+        within = {"held_in": held_in, "held_in_share": float(held_in.mean())}
         model_notes.append(support["text"] + "; an effect must also gain on the rest"
-                           + ("" if held_in.mean() >= COVERAGE_MIN_SHARE else
+                           + ("" if within["held_in_share"] >= COVERAGE_MIN_SHARE else
                               " (too little is left for that, so none can: give a model "
                               "identified on the record's kind of input)"))
         say(model_notes[-1])
-        # one mask for every candidate: within the model's voltages and where it has rows
-        coverage = {"held_in": held_in, "held_in_share": float(held_in.mean())}
     ana_before = analyse(before, u, y, cut)
     rmse_before = ana_before["rmse_free_mm"]
     say(f"baseline: held-out free-run RMSE {rmse_before:.4f} mm, one-step "
@@ -1294,8 +1296,8 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
             # without it on the first half; seed 1: a 0.06 V dead zone for a drift).
             half, half_text = half_gains(current, name, rmse_cur)
         inside = []  # where the given model has data (model_coverage, model_support)
-        if coverage is not None:
-            inside = [_covered_gain(coverage, y[cut:] - free, e_cur, L)]
+        if within is not None:
+            inside = [_covered_gain(within, y[cut:] - free, e_cur, L)]
         gains = [gain] + paired + half + [-1.0 if g is None else g for g in inside]
         change = (free - ana_cur["free_run"])[L:]
         contribution = (float(np.sqrt(np.mean(change ** 2))) if np.all(np.isfinite(change))
@@ -1349,7 +1351,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
             checks = f"; fitted on either half of the fit part {', '.join(half_text)}"
         if inside:
             checks += (f"; where the given model has data "
-                       f"({100 * coverage['held_in_share']:.0f} % of the held-out part) "
+                       f"({100 * within['held_in_share']:.0f} % of the held-out part) "
                        + ("untested" if inside[0] is None else f"{100 * inside[0]:+.1f} %"))
         ev["text"] = ((f"{how}, beside {beside}: " if beside else "")
                       + ("block around the given model (not refitted): " if frozen else "")
