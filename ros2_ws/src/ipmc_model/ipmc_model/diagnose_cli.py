@@ -26,7 +26,9 @@ def _parser() -> argparse.ArgumentParser:
                                    "diagnosis's model_before/after), e.g. fitted on another "
                                    "day: kept as it is, and drift, delay, dead zone, asymmetry "
                                    "and saturation are fitted around it (what changed since); "
-                                   "default: identify one on the first 70 %% of the data")
+                                   "identify it on the same kind of input (a model of another "
+                                   "kind gets its blocks undecided, not accepted); default: "
+                                   "identify one on the first 70 %% of the data")
     p.add_argument("--report", required=True, metavar="DIR", help="output directory")
     p.add_argument("--seed", type=int, default=0, help="seed of tuning and prototypes")
     add_input_memory_taus(

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .diagnose import input_kind
 from .metrics import score
 from .narx import PAPER_C, PAPER_SIGMA, InverseNarxModel, NarxModel
 from .persistence import load_model, save_model
@@ -231,7 +232,9 @@ def identify_main(argv: list[str] | None = None) -> int:
     try:
         rec = _load(args.data)
         u, y = rec.u_v, rec.y_mm
-        meta = {"data": str(args.data), "samples": int(u.size), "rate_hz": float(rec.rate_hz)}
+        # the kind of input kept with the model: ipmc diagnose --model checks a record against it
+        meta = {"data": str(args.data), "samples": int(u.size), "rate_hz": float(rec.rate_hz),
+                "input_kind": input_kind(u, float(rec.rate_hz))}
         if args.model == "pi":
             if args.inverse:
                 raise ValueError("--inverse is for lssvm-narx; a PI model is inverted "

@@ -175,6 +175,11 @@ def test_identify_builds_a_forward_model_with_voltage_channels(tmp_path, csvs, c
     rmse = np.sqrt(np.mean((m.simulate(rec.u_v) - rec.y_mm) ** 2))
     assert doc["metadata"]["training_metrics"]["free_run"]["rmse"] == pytest.approx(rmse)
     assert rmse < 0.2 * np.std(rec.y_mm)
+    # the kind of input it was identified on, which ipmc diagnose --model checks a record against
+    from ipmc_model.diagnose import input_kind, model_input_kind
+
+    assert doc["metadata"]["input_kind"] == pytest.approx(input_kind(rec.u_v, rec.rate_hz))
+    assert model_input_kind(m) == pytest.approx(doc["metadata"]["input_kind"])
     # Comma lists work too; with the voltage kept, three channels.
     rc = identify_main(["--data", str(train), "--model", "lssvm-narx", "--tune", "none",
                         "--C", "1e4", "--sigma", "2", "--input-memory-taus", "0.3,0.5",
