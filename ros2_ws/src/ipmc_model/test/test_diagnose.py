@@ -563,6 +563,17 @@ def test_input_kind_tells_an_input_with_holds_from_the_mixed_input():
     # a bandwidth 4 times as wide differs too, holds alike
     assert kinds_differ(k0, dict(k0, bandwidth_hz=4 * k0["bandwidth_hz"]))
     assert not kinds_differ(k0, dict(k0, bandwidth_hz=2 * k0["bandwidth_hz"]))
+    # a model file without a kind, or with a damaged one, has none: the record is not checked
+
+    class Loaded:
+        metadata_ = {"input_kind": k0}
+
+    assert model_input_kind(Loaded()) == pytest.approx(k0)
+    for bad in ({}, {"input_kind": None}, {"input_kind": {"bandwidth_hz": "fast"}},
+                {"input_kind": dict(k0, hold_share=1.5)}):
+        Loaded.metadata_ = bad
+        assert model_input_kind(Loaded()) is None
+    assert model_input_kind(object()) is None
 
 
 def test_blocks_around_a_model_of_another_kind_of_input_are_undecided(tmp_path):
