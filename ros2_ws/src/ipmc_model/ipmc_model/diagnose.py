@@ -1056,6 +1056,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
     n = u.size
     cut = int(round(FIT_FRACTION * n))
     uf, yf = u[:cut], y[:cut]
+    fit_kind = input_kind(uf, rate)  # kept with a baseline identified here
     tuning: dict = {}
     if model is None:
         step = choose_lag_step(uf, rate) if lag_step is None else int(lag_step)
@@ -1090,7 +1091,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
         if memory_taus_s:
             tuning["memory_taus_s"] = list(memory_taus_s)
         before = AugmentedModel.identify(narx, uf, yf, blocks, dt)
-        before.metadata_ = {"input_kind": input_kind(uf, rate)}
+        before.metadata_ = {"input_kind": fit_kind}
     else:
         if model.effects:
             say(f"the given model already has effects {model.effect_names}")
@@ -1699,8 +1700,7 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
     if current is not before:
         # the input the final model's baseline was identified on: the given model's, or, if
         # refitted here, the fit part's
-        k = (model_input_kind(before) if current.baseline is before.baseline
-             else input_kind(uf, rate))
+        k = model_input_kind(before) if current.baseline is before.baseline else fit_kind
         current.metadata_ = {"input_kind": k} if k is not None else {}
     d = Diagnosis(before, current, rmse_before, rmse_cur, evaluated, found, ana_before,
                   ana_cur, t, u, y, cut, tuning, threshold, time.perf_counter() - t0_wall,
