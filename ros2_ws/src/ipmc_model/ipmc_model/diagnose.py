@@ -91,6 +91,7 @@ import numpy as np
 from ipmc_driver.validation import as_signal, same_length
 
 from .effects import (
+    CREEP_HOLD_SKIP_S,
     EFFECT_NAMES,
     FROZEN_EFFECTS,
     PAIR_REFIT_EFFECTS,
@@ -116,6 +117,7 @@ from .residuals import (
     block_jackknife_coef,
     ccf,
     correlation_test,
+    find_holds,
     hold_drift_test,
     ljung_box,
     noise_floor,
@@ -474,8 +476,6 @@ def input_kind(u, rate_hz: float) -> dict:
     ``bandwidth_hz``) and the share of its samples in input holds of >= 3 s
     (``hold_share``, :func:`~ipmc_model.residuals.find_holds`). A model file keeps the kind
     of the input it was identified on (``metadata["input_kind"]``, :func:`model_input_kind`)."""
-    from .residuals import find_holds
-
     u = np.asarray(u, float)
     f, p = spectrum(u, rate_hz, nperseg=min(u.size, 4096))
     c = np.cumsum(p)
@@ -1815,7 +1815,9 @@ def _markdown(d: Diagnosis, s: dict, figs: list[str], label: str) -> str:
         lines.append(f"| {c.evidence.get('round', '')} | {c.effect} | {rm} | "
                      f"{'yes' if c.accepted else 'no'} | {c.evidence.get('text', '')}"
                      f"{'; ' + c.evidence['describe'] if 'describe' in c.evidence else ''} |")
-    lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figs] + [""]
+    lines += ["", "## Figures", ""]
+    for f in figs:
+        lines += [f"![{f}]({f})", "", FIGURE_CAPTIONS[f], ""]
     return "\n".join(lines)
 
 
@@ -1898,7 +1900,107 @@ def _figures(d: Diagnosis, out: Path) -> list[str]:
     names.append("residual_spectrum.png")
     fig.savefig(out / names[-1], dpi=100)
     plt.close(fig)
-    return names
+    creep = _creep_figure(d, out, plt)
+    return names + ([creep] if creep else [])
+
+
+#: Input holds the creep figure draws: at least this long (s), as :func:`input_kind` counts
+#: them, each from :data:`~ipmc_model.effects.CREEP_HOLD_SKIP_S` in (the plant's fast settling
+#: is no creep).
+FIGURE_HOLD_MIN_S = 3.0
+
+#: What each figure of report.md shows, under it.
+FIGURE_CAPTIONS = {
+    "residual_before_after.png": "The held-out part: measured and free-run predicted "
+    "displacement (top), and the free-run residual before and after (bottom).",
+    "acf_ccf.png": "Autocorrelation of the held-out residual and its cross-correlation with "
+    "the input, free-run and one-step, before and after; a residual the model has nothing "
+    "left to explain of stays within the grey 95 % band.",
+    "residual_spectrum.png": "Power spectrum of the held-out free-run residual, before and "
+    "after: a missing slow effect (creep, drift) shows at the lowest frequencies.",
+    "creep_holds.png": f"The held-out input holds of at least {FIGURE_HOLD_MIN_S:g} s, from "
+    f"{CREEP_HOLD_SKIP_S:g} s into each (the plant's fast settling before that is no creep): "
+    "left, the residual before (solid) beside the drift the fitted creep predicts (dashed); "
+    "right, the final model's residual, with the creep in it if it was accepted. What drifts "
+    "on the right is left unexplained. On short holds much of what moves is the plant's "
+    "settling after the step, which the baseline misses and the hold test takes off each hold "
+    "(an exponential of 0.3-0.8 s) before it compares the drift with the creep's.",
+}
+
+
+def shown_creep(d: Diagnosis) -> tuple[Effect, bool] | None:
+    """The creep the report speaks of, and whether it was accepted: the final model's creep,
+    else one named in the data (:meth:`Diagnosis.in_data`); None without either."""
+    for e in d.model_after.effects:
+        if e.name == "creep":
+            return e, True
+    for c in d.in_data():
+        if c.effect == "creep" and "params" in c.evidence:
+            return Effect("creep", **c.evidence["params"]), False
+    return None
+
+
+def hold_segments(d: Diagnosis, creep: Effect) -> list[dict]:
+    """The held-out part's input holds of >= :data:`FIGURE_HOLD_MIN_S`, from
+    :data:`~ipmc_model.effects.CREEP_HOLD_SKIP_S` into each: time since the hold began (s),
+    and the change since then (mm) of the free-run residual before and after and of
+    ``creep``'s state (what the creep predicts the residual before does). Holds shorter than
+    a second past the skip, or within the models' warm-up, are left out."""
+    dt, cut = d.model_before.dt_s, d.cut
+    u = d.u_v
+    c = creep.creep_state(u, dt)[cut:]
+    res = []
+    for a in (d.analysis_before, d.analysis_after):
+        r = d.y_mm[cut:] - np.asarray(a["free_run"], float)
+        r[:r.size - a["e_free"].size] = np.nan  # the model's warm-up (its max lag)
+        res.append(r)
+    skip = int(round(CREEP_HOLD_SKIP_S / dt))
+    out = []
+    for a, b in find_holds(u[cut:], dt, FIGURE_HOLD_MIN_S):
+        a0 = a + skip
+        if b - a0 < int(round(1.0 / dt)) or not all(np.isfinite(r[a0]) for r in res):
+            continue
+        out.append({"t_s": (np.arange(a0, b) - a) * dt, "u_v": float(u[cut + a]),
+                    "before_mm": res[0][a0:b] - res[0][a0],
+                    "after_mm": res[1][a0:b] - res[1][a0],
+                    "creep_mm": c[a0:b] - c[a0]})
+    return out
+
+
+def _creep_figure(d: Diagnosis, out: Path, plt) -> str | None:
+    """``creep_holds.png``: the residual during the held-out input holds, before and after,
+    with what the creep predicts; None without a creep or such holds."""
+    shown = shown_creep(d)
+    segs = hold_segments(d, shown[0]) if shown else []
+    if not segs:
+        return None
+    creep, accepted = shown
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    # one colour per hold voltage, whatever the number of holds
+    top = max(abs(s["u_v"]) for s in segs) or 1.0
+    norm = plt.Normalize(-top, top)
+    cmap = plt.get_cmap("coolwarm")
+    for s in segs:
+        col = cmap(norm(s["u_v"]))
+        axes[0].plot(s["t_s"], s["before_mm"], color=col, lw=1.0)
+        axes[0].plot(s["t_s"], s["creep_mm"], color=col, lw=1.0, ls="--")
+        axes[1].plot(s["t_s"], s["after_mm"], color=col, lw=1.0)
+    p = creep.params
+    axes[0].set_title(f"before: residual (solid) and the creep's prediction (dashed)\n"
+                      f"tau {p['tau_s']:.3g} s, gain {p['gain_mm_per_v']:.3g} mm/V",
+                      fontsize=9)
+    axes[1].set_title("after: residual, creep in the model" if accepted else
+                      "final model: residual (creep named in the data, not added)", fontsize=9)
+    axes[0].set_ylabel(f"change from {CREEP_HOLD_SKIP_S:g} s into the hold (mm)")
+    for ax in axes:
+        ax.axhline(0.0, color="grey", lw=0.6)
+        ax.set_xlabel("time since the input hold began (s), held-out part")
+    fig.tight_layout()
+    fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), ax=axes, pad=0.01,
+                 label=f"hold voltage (V), {len(segs)} holds")
+    fig.savefig(out / "creep_holds.png", dpi=100)
+    plt.close(fig)
+    return "creep_holds.png"
 
 
 def lb_p(e, lags: int = 20) -> float:

@@ -134,9 +134,22 @@ def test_creep_found_with_undeclared_parameters(seed, creep, tmp_path):
     from ipmc_model.diagnose import write_report
 
     write_report(d, tmp_path)
+    report = (tmp_path / "report.md").read_text()
     assert (f"| creep | tau_s | {fitted['tau_s']:.4g} | {lo:.4g} to {hi:.4g} | s | "
-            "time constant of the slow relaxation under a held voltage |") in (
-        tmp_path / "report.md").read_text()
+            "time constant of the slow relaxation under a held voltage |") in report
+    # the figure of the evidence: in the held-out input holds the residual before drifts the
+    # way the creep predicts, and the creep in the model takes most of that drift out
+    assert "creep_holds.png" in report and (tmp_path / "creep_holds.png").stat().st_size > 1000
+    from ipmc_model.diagnose import hold_segments, shown_creep
+
+    shown, was_accepted = shown_creep(d)
+    assert was_accepted and shown.params == pytest.approx(fitted)
+    segments = hold_segments(d, shown)
+    assert len(segments) >= 2
+    for s in segments:
+        before, predicted, after = s["before_mm"][-1], s["creep_mm"][-1], s["after_mm"][-1]
+        assert np.sign(before) == np.sign(predicted) == -np.sign(s["u_v"])
+        assert abs(after) < 0.5 * abs(before)
 
 
 def test_no_creep_on_clean_step_record():
@@ -1062,6 +1075,7 @@ def test_cli_writes_the_contract(tmp_path):
     assert "Before and after" in report and "acf_ccf.png" in report
     for f in ("residual_before_after.png", "acf_ccf.png", "residual_spectrum.png"):
         assert (out / f).stat().st_size > 1000
+    assert not (out / "creep_holds.png").exists()  # no creep, found or named, on this record
     # the saved baseline can be given back as --model
     out2 = tmp_path / "again"
     assert main(["--data", str(csv), "--model", summary["model_before"], "--report",
