@@ -1944,23 +1944,23 @@ def hold_segments(d: Diagnosis, creep: Effect) -> list[dict]:
     """The held-out part's input holds of >= :data:`FIGURE_HOLD_MIN_S`, from
     :data:`~ipmc_model.effects.CREEP_HOLD_SKIP_S` into each: time since the hold began (s),
     and the change since then (mm) of the free-run residual before and after and of
-    ``creep``'s state (what the creep predicts the residual before does). Holds shorter than
-    a second past the skip, or within the models' warm-up, are left out."""
+    ``creep``'s state (what the creep predicts the residual before does). Holds found on the
+    whole record, as the hold test finds them; those that began before the held-out part,
+    end less than a second past the skip, or start within a model's warm-up are left out."""
     dt, cut = d.model_before.dt_s, d.cut
-    u = d.u_v
-    c = creep.creep_state(u, dt)[cut:]
+    c = creep.creep_state(d.u_v, dt)
     res = []
-    for a in (d.analysis_before, d.analysis_after):
-        r = d.y_mm[cut:] - np.asarray(a["free_run"], float)
-        r[:r.size - a["e_free"].size] = np.nan  # the model's warm-up (its max lag)
+    for m, a in ((d.model_before, d.analysis_before), (d.model_after, d.analysis_after)):
+        r = np.full(d.u_v.size, np.nan)
+        r[cut + m.max_lag_:] = (d.y_mm[cut:] - a["free_run"])[m.max_lag_:]
         res.append(r)
     skip = int(round(CREEP_HOLD_SKIP_S / dt))
     out = []
-    for a, b in find_holds(u[cut:], dt, FIGURE_HOLD_MIN_S):
+    for a, b in find_holds(d.u_v, dt, FIGURE_HOLD_MIN_S):
         a0 = a + skip
-        if b - a0 < int(round(1.0 / dt)) or not all(np.isfinite(r[a0]) for r in res):
+        if a < cut or b - a0 < int(round(1.0 / dt)) or not all(np.isfinite(r[a0]) for r in res):
             continue
-        out.append({"t_s": (np.arange(a0, b) - a) * dt, "u_v": float(u[cut + a]),
+        out.append({"t_s": (np.arange(a0, b) - a) * dt, "u_v": float(d.u_v[a]),
                     "before_mm": res[0][a0:b] - res[0][a0],
                     "after_mm": res[1][a0:b] - res[1][a0],
                     "creep_mm": c[a0:b] - c[a0]})
