@@ -12,7 +12,7 @@ import argparse
 import sys
 
 from .diagnose import diagnose, print_progress, write_report
-from .effects import load_augmented
+from .effects import check_rate, load_augmented
 from .identify_cli import add_input_memory_taus, taus_list
 
 
@@ -54,10 +54,7 @@ def main(argv: list[str] | None = None) -> int:
         print_progress(f"{args.data}: {len(rec)} samples at {rec.rate_hz:.4g} Hz")
         model = None
         if args.model:
-            model = load_augmented(args.model, dt_s=rec.dt_s)
-            if abs(model.dt_s - rec.dt_s) > 0.01 * rec.dt_s:
-                raise ValueError(f"the model was identified at {1 / model.dt_s:.4g} Hz, the "
-                                 f"data are at {rec.rate_hz:.4g} Hz")
+            model = check_rate(load_augmented(args.model, dt_s=rec.dt_s), rec.dt_s)
         d = diagnose(rec.t_s, rec.u_v, rec.y_mm, model=model, seed=args.seed,
                      memory_taus_s=taus_list(args.input_memory_taus),
                      committee=args.committee, progress=print_progress)

@@ -712,6 +712,29 @@ def load_augmented(path, dt_s: float | None = None) -> AugmentedModel:
     return m
 
 
+def check_rate(model: AugmentedModel, dt_s: float) -> AugmentedModel:
+    """``model``, if its sample period is the record's ``dt_s`` (s) within 1 %; a ValueError
+    naming both rates otherwise (the effects' states and the lags count samples)."""
+    if abs(model.dt_s - dt_s) > 0.01 * dt_s:
+        raise ValueError(f"the model was identified at {1 / model.dt_s:.4g} Hz, the data are "
+                         f"at {1 / dt_s:.4g} Hz")
+    return model
+
+
+def load_any_model(path, dt_s: float):
+    """Any model file this package writes, for a record sampled every ``dt_s`` (s): an
+    augmented one (``ipmc diagnose``'s ``model_after.json``) as :class:`AugmentedModel`,
+    checked against the rate (:func:`check_rate`); any other as
+    :func:`~ipmc_model.persistence.load_model` gives it (NARX, inverse, Prandtl-Ishlinskii)."""
+    try:
+        fmt = json.loads(Path(path).read_text()).get("format")
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
+        fmt = None  # load_model names what is wrong with the file
+    if fmt == AUGMENTED_FORMAT:
+        return check_rate(load_augmented(path, dt_s), dt_s)
+    return load_model(path)
+
+
 # -- fitting the effects --
 def _free_run_rmse(model: AugmentedModel, u, y, u_past=None, t0_s=0.0) -> float:
     L = model.max_lag_

@@ -16,9 +16,10 @@ from pathlib import Path
 import numpy as np
 
 from .diagnose import input_kind
+from .effects import AugmentedModel, load_any_model
 from .metrics import score
 from .narx import PAPER_C, PAPER_SIGMA, InverseNarxModel, NarxModel
-from .persistence import load_model, save_model
+from .persistence import save_model
 from .play import PrandtlIshlinskii
 from .tuning import (
     DEFAULT_CYCLES,
@@ -126,6 +127,13 @@ def evaluate_model(model, u, y) -> dict:
         y_free = model.simulate(y, u[:skip])
         y_one = model.predict(y, u)
         target, units = u, "V"
+    elif isinstance(model, AugmentedModel):
+        # ipmc diagnose's model_after: the baseline with its effects as blocks; a creep starts
+        # from rest and a drift from the record's first sample
+        skip = model.max_lag_
+        y_free = model.simulate(u, y[:skip])
+        y_one = model.predict(u, y)
+        target, units = y, "mm"
     elif isinstance(model, NarxModel):
         skip = model.max_lag_
         y_free = model.simulate(u, y[:skip])
@@ -344,7 +352,10 @@ def _evaluate_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="ipmc evaluate",
                                 description="Score a saved model on a record (free-run and "
                                             "one-step).")
-    p.add_argument("--model", required=True, help="model file written by ipmc identify")
+    p.add_argument("--model", required=True,
+                   help="model file written by ipmc identify, or ipmc diagnose's "
+                        "model_before.json / model_after.json (the baseline with the effects "
+                        "found: a creep starts from rest, a drift at the record's start)")
     p.add_argument("--data", required=True, help="t,u,y CSV file (s, V, mm) or rosbag2 folder")
     p.add_argument("--plots", metavar="DIR", help="write PNG figures to DIR")
     p.add_argument("--json", metavar="OUT", help="write the metrics as JSON to OUT")
@@ -355,8 +366,8 @@ def evaluate_main(argv: list[str] | None = None) -> int:
     """Entry point of ``ipmc evaluate``."""
     args = _evaluate_parser().parse_args(argv)
     try:
-        model = load_model(args.model)
         rec = _load(args.data)
+        model = load_any_model(args.model, rec.dt_s)
         result = evaluate_model(model, rec.u_v, rec.y_mm)
     except ValueError as exc:
         print(f"ipmc evaluate: error: {exc}", file=sys.stderr)

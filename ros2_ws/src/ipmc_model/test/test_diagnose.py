@@ -108,7 +108,7 @@ def test_no_creep_on_clean_plant_with_holds():
     # input, 8.9 % gain; with holds and 120 s it gains 62 %)
     (4, {"tau_s": 8.0, "gain_mm_per_v": -0.4}),
 ])
-def test_creep_found_with_undeclared_parameters(seed, creep, tmp_path):
+def test_creep_found_with_undeclared_parameters(seed, creep, tmp_path, capsys):
     # creep needs input holds to show in time (the hold-drift evidence), and 120 s: on 90 s of
     # this input the seed-1 creep fit lands at tau 28 s, -2.7 mm/V and loses on held-out data
     t, u, y = _plant({"creep": creep}, seed=seed, seconds=120.0, holds=True)
@@ -150,6 +150,21 @@ def test_creep_found_with_undeclared_parameters(seed, creep, tmp_path):
         before, predicted, after = s["before_mm"][-1], s["creep_mm"][-1], s["after_mm"][-1]
         assert np.sign(before) == np.sign(predicted) == -np.sign(s["u_v"])
         assert abs(after) < 0.5 * abs(before)
+    # `ipmc evaluate` scores the model with its creep on a record, as it scores any model
+    from ipmc_model.identify_cli import evaluate_main
+
+    csv = save_csv(Record(t, u, y), tmp_path / "creep.csv")
+    rmse = {}
+    for name in ("model_before", "model_after"):
+        assert evaluate_main(["--model", str(tmp_path / f"{name}.json"), "--data", str(csv),
+                              "--json", str(tmp_path / f"{name}_eval.json")]) == 0
+        rmse[name] = json.loads((tmp_path / f"{name}_eval.json").read_text())["free_run"]["rmse"]
+    # the whole record: the fit part too, where the baseline after was refitted
+    assert rmse["model_after"] < 0.8 * rmse["model_before"]
+    slow = save_csv(Record(2.0 * t, u, y), tmp_path / "slow.csv")  # 25 Hz, not the model's 50
+    assert evaluate_main(["--model", str(tmp_path / "model_after.json"), "--data",
+                          str(slow)]) == 1
+    assert "the model was identified at 50 Hz, the data are at 25 Hz" in capsys.readouterr().err
 
 
 def test_no_creep_on_clean_step_record():
