@@ -127,14 +127,9 @@ def evaluate_model(model, u, y) -> dict:
         y_free = model.simulate(y, u[:skip])
         y_one = model.predict(y, u)
         target, units = u, "V"
-    elif isinstance(model, AugmentedModel):
-        # ipmc diagnose's model_after: the baseline with its effects as blocks; a creep starts
-        # from rest and a drift from the record's first sample
-        skip = model.max_lag_
-        y_free = model.simulate(u, y[:skip])
-        y_one = model.predict(u, y)
-        target, units = y, "mm"
-    elif isinstance(model, NarxModel):
+    elif isinstance(model, (NarxModel, AugmentedModel)):
+        # an AugmentedModel (ipmc diagnose's model_after) is scored as its baseline is, its
+        # effects as blocks around it: a creep starts from rest, a drift at the first sample
         skip = model.max_lag_
         y_free = model.simulate(u, y[:skip])
         y_one = model.predict(u, y)
