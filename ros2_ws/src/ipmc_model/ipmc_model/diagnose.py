@@ -91,6 +91,8 @@ import numpy as np
 from ipmc_driver.validation import as_signal, same_length
 
 from .effects import (
+    CREEP_FAST_TAUS_S,
+    CREEP_HOLD_MIN_USE_S,
     CREEP_HOLD_SKIP_S,
     EFFECT_NAMES,
     FROZEN_EFFECTS,
@@ -1904,10 +1906,10 @@ def _figures(d: Diagnosis, out: Path) -> list[str]:
     return names + ([creep] if creep else [])
 
 
-#: Input holds the creep figure draws: at least this long (s), as :func:`input_kind` counts
+#: Input holds the creep figure draws: at least this long (s), as the creep's hold fit uses
 #: them, each from :data:`~ipmc_model.effects.CREEP_HOLD_SKIP_S` in (the plant's fast settling
-#: is no creep).
-FIGURE_HOLD_MIN_S = 3.0
+#: is no creep) for at least :data:`~ipmc_model.effects.CREEP_HOLD_MIN_USE_S`.
+FIGURE_HOLD_MIN_S = CREEP_HOLD_SKIP_S + CREEP_HOLD_MIN_USE_S
 
 #: What each figure of report.md shows, under it.
 FIGURE_CAPTIONS = {
@@ -1924,7 +1926,8 @@ FIGURE_CAPTIONS = {
     "right, the final model's residual, with the creep in it if it was accepted. What drifts "
     "on the right is left unexplained. On short holds much of what moves is the plant's "
     "settling after the step, which the baseline misses and the hold test takes off each hold "
-    "(an exponential of 0.3-0.8 s) before it compares the drift with the creep's.",
+    f"(an exponential of {min(CREEP_FAST_TAUS_S):g}-{max(CREEP_FAST_TAUS_S):g} s) before it "
+    "compares the drift with the creep's.",
 }
 
 
@@ -1945,8 +1948,8 @@ def hold_segments(d: Diagnosis, creep: Effect) -> list[dict]:
     :data:`~ipmc_model.effects.CREEP_HOLD_SKIP_S` into each: time since the hold began (s),
     and the change since then (mm) of the free-run residual before and after and of
     ``creep``'s state (what the creep predicts the residual before does). Holds found on the
-    whole record, as the hold test finds them; those that began before the held-out part,
-    end less than a second past the skip, or start within a model's warm-up are left out."""
+    whole record, as the hold test finds them; those that began before the held-out part or
+    whose first sample past the skip lies within a model's warm-up are left out."""
     dt, cut = d.model_before.dt_s, d.cut
     c = creep.creep_state(d.u_v, dt)
     res = []
@@ -1958,7 +1961,7 @@ def hold_segments(d: Diagnosis, creep: Effect) -> list[dict]:
     out = []
     for a, b in find_holds(d.u_v, dt, FIGURE_HOLD_MIN_S):
         a0 = a + skip
-        if a < cut or b - a0 < int(round(1.0 / dt)) or not all(np.isfinite(r[a0]) for r in res):
+        if a < cut or not all(np.isfinite(r[a0]) for r in res):
             continue
         out.append({"t_s": (np.arange(a0, b) - a) * dt, "u_v": float(d.u_v[a]),
                     "before_mm": res[0][a0:b] - res[0][a0],
