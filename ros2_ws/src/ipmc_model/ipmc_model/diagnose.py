@@ -100,6 +100,7 @@ from .effects import (
     PARAM_MEANING,
     PARAM_UNITS,
     REFIT_EFFECTS,
+    AugmentedInverse,
     AugmentedModel,
     Effect,
     drift_removed,
@@ -2025,16 +2026,6 @@ PAPER_CONSTANT_RMSE_MM = 0.8756
 SETTLE_S = 2.0
 
 
-class _InverseOf:
-    """``run_tracking``'s inverse interface (``stepper()``) for an augmented model's inverse."""
-
-    def __init__(self, model: AugmentedModel, inverse):
-        self.model, self.inverse = model, inverse
-
-    def stepper(self):
-        return self.model.inverse_stepper(self.inverse)
-
-
 def _settled_rmse(res, after_s: float = SETTLE_S) -> float:
     e = (res.reference_mm - res.y_mm)[res.t_s >= after_s]
     return float(np.sqrt(np.mean(e * e)))
@@ -2110,7 +2101,8 @@ def creep_hold_experiment(*, identify_s: float = 120.0, duration_s: float | None
     if "creep" in after.effect_names:
         creep_only = AugmentedModel(after.baseline,
                                     [e for e in after.effects if e.name == "creep"], dt)
-        aug = _InverseOf(creep_only, creep_only.fit_inverse(run.u_v, run.y_mm, template))
+        aug = AugmentedInverse(creep_only,
+                               creep_only.fit_inverse(run.u_v, run.y_mm, template))
     else:
         aug = None
     dur = DEFAULT_DURATION_S[reference] if duration_s is None else float(duration_s)

@@ -67,7 +67,10 @@ then advances the creep state. Drift and saturation are inverted the same way, d
 asymmetry (either form) by their inverse static maps, the output form of rate dependence like
 creep (its state is known from the voltages already applied); delay and the rate and memory
 channels are not invertible step by step (a delay needs reference preview) and raise
-``ValueError``.
+``ValueError``. :class:`AugmentedInverse` is that feedforward as a model file (``ipmc identify
+--inverse --effects-from``, served by ``ipmc track`` and model_server): it keeps the effects a
+later run can undo and leaves out, with the reason, drift (its time origin is the
+identification record's), delay and the channels (:data:`FEEDFORWARD_LEAVES_OUT`).
 """
 
 from __future__ import annotations
@@ -133,6 +136,18 @@ PARAM_MEANING = {
 
 AUGMENTED_FORMAT = "ipmc-ros-augmented-model"
 AUGMENTED_FORMAT_VERSION = 1
+#: ``kind`` of an augmented model file that also holds a feedforward (:class:`AugmentedInverse`).
+AUGMENTED_INVERSE_KIND = "augmented-lssvm-narx-inverse"
+
+#: Effects an augmented model's feedforward leaves out, and why (:class:`AugmentedInverse`).
+FEEDFORWARD_LEAVES_OUT = {
+    "drift": "a trend over the identification record's time: a later run starts at a point of "
+             "it the feedforward cannot know (the PID takes out a slow offset)",
+    "delay": "a transport delay cannot be undone without the reference ahead of time",
+    "rate_dependence": "its rate channel is an input of the baseline, which the inverse does "
+                       "not give",
+    "memory": "its channel is an input of the baseline, which the inverse does not give",
+}
 
 
 # -- the effects --
@@ -550,11 +565,23 @@ class AugmentedModel:
         inv = InverseNarxModel() if inverse is None else copy.deepcopy(inverse)
         return inv.fit(v, z)
 
-    def inverse_stepper(self, inverse: InverseNarxModel, t0_s: float = 0.0
-                        ) -> AugmentedInverseStepper:
+    def inverse_stepper(self, inverse: InverseNarxModel, t0_s: float = 0.0, *,
+                        y_history=None, u_history=None) -> AugmentedInverseStepper:
         """Feedforward compensator ``step(y_desired_mm) -> u_v``; see
         :class:`AugmentedInverseStepper`."""
-        return AugmentedInverseStepper(self, inverse, t0_s)
+        return AugmentedInverseStepper(self, inverse, t0_s, y_history=y_history,
+                                       u_history=u_history)
+
+    def feedforward_part(self) -> tuple[AugmentedModel, dict[str, str]]:
+        """The model with the effects a feedforward can undo step by step, and the others
+        with why each is left out (:data:`FEEDFORWARD_LEAVES_OUT`)."""
+        kept, left = [], {}
+        for e in self.effects:
+            if e.name in ("drift", "delay") or e.is_channel:
+                left[e.name] = FEEDFORWARD_LEAVES_OUT[e.name]
+            else:
+                kept.append(e)
+        return AugmentedModel(self.baseline, kept, self.dt_s), left
 
 
 class AugmentedStepper:
@@ -598,9 +625,14 @@ class AugmentedInverseStepper:
         Fitted by :meth:`AugmentedModel.fit_inverse` (baseline space).
     t0_s : float
         Time of the first step since the identification record's start (drift).
+    y_history, u_history : array_like, optional
+        Past desired displacements (mm) and applied voltages (V), oldest first, of equal
+        length: replayed through the steps, so the stepper goes on from them (a model server's
+        reload) instead of from rest. A creep state older than the history is not known.
     """
 
-    def __init__(self, model: AugmentedModel, inverse: InverseNarxModel, t0_s: float = 0.0):
+    def __init__(self, model: AugmentedModel, inverse: InverseNarxModel, t0_s: float = 0.0,
+                 *, y_history=None, u_history=None):
         for e in model.effects:
             if e.name == "delay" or e.is_channel:
                 raise ValueError(f"the {e.name} effect cannot be inverted step by step")
@@ -611,6 +643,13 @@ class AugmentedInverseStepper:
         self._k = 0
         self._t0 = float(t0_s)
         self._pending: tuple[float, float] | None = None  # (u applied, v returned)
+        if y_history is not None or u_history is not None:
+            yh, uh = as_signal("y_history", y_history), as_signal("u_history", u_history)
+            same_length(y_history=yh, u_history=uh)
+            self._t0 -= yh.size * model.dt_s  # the history ends where t0_s starts
+            for y_k, u_k in zip(yh, uh, strict=True):
+                self.step(y_k)
+                self.record_applied(u_k)
 
     def _commit(self) -> None:
         if self._pending is None:
@@ -646,13 +685,97 @@ class AugmentedInverseStepper:
             self._pending = (float(u_applied_v), self._pending[1])
 
 
+class AugmentedInverse:
+    """The feedforward of an augmented model: the baseline's inverse NARX, fitted in the
+    baseline's space, with the model's effects undone around it step by step.
+
+    What ``ipmc identify --inverse --effects-from MODEL`` writes, and ``ipmc track`` and
+    model_server serve as an inverse model: ``stepper(y_history, u_history)`` gives
+    ``step(y_desired_mm) -> u_v`` and ``record_applied(u_v)``. Effects that cannot be undone
+    step by step (drift, delay, the channel blocks) are left out (``left_out``), the others
+    kept (``feedforward_model``): creep and the output form of rate dependence subtract their
+    state, dead zone, asymmetry and saturation invert their static maps.
+
+    Parameters
+    ----------
+    model : AugmentedModel
+        The whole augmented model (``ipmc diagnose``'s ``model_after.json``).
+    inverse : InverseNarxModel
+        Fitted on ``feedforward_model.to_baseline_space(u, y)`` (voltages from displacements in
+        the baseline's space).
+    """
+
+    def __init__(self, model: AugmentedModel, inverse: InverseNarxModel):
+        if not isinstance(inverse, InverseNarxModel):
+            raise ValueError(f"inverse must be an InverseNarxModel, got {type(inverse).__name__}")
+        self.model, self.inverse = model, inverse
+        self.feedforward_model, self.left_out = model.feedforward_part()
+
+    @property
+    def dt_s(self) -> float:
+        return self.model.dt_s
+
+    @property
+    def max_lag_(self) -> int:
+        return self.inverse.max_lag_
+
+    @property
+    def effect_names(self) -> list[str]:
+        """The effects the feedforward undoes."""
+        return self.feedforward_model.effect_names
+
+    def stepper(self, y_history=None, u_history=None, t0_s: float = 0.0
+                ) -> AugmentedInverseStepper:
+        """Sample-by-sample compensator from rest, or going on from a history (desired mm,
+        applied V, oldest first); see :class:`AugmentedInverseStepper`."""
+        return self.feedforward_model.inverse_stepper(self.inverse, t0_s, y_history=y_history,
+                                                      u_history=u_history)
+
+    def _run(self, y, u_known) -> np.ndarray:
+        """Step through ``y`` (mm); the first ``len(u_known)`` voltages applied are those (V)."""
+        s, out = self.stepper(), np.empty(y.size)
+        for k, y_k in enumerate(y):
+            out[k] = s.step(y_k)
+            if k < u_known.size:
+                s.record_applied(u_known[k])
+        return out
+
+    def simulate(self, y_desired, u_init=None) -> np.ndarray:
+        """Free-run compensator: voltages (V) for a desired trajectory (mm), from rest. As the
+        inverse NARX's, entries ``[:max_lag_]`` are ``u_init`` (V, default zeros): the voltages
+        applied first."""
+        L = self.max_lag_
+        y = as_signal("y_desired", y_desired, min_length=L + 1)
+        u0 = np.zeros(L) if u_init is None else as_signal("u_init", u_init, min_length=0)
+        if u0.size != L:
+            raise ValueError(f"u_init must be {L} values (max lag), got {u0.size}")
+        out = self._run(y, u0)
+        out[:L] = u0
+        return out
+
+    def predict(self, y, u) -> np.ndarray:
+        """One-step compensator: the voltage (V) for each displacement ``y`` (mm), the measured
+        voltages ``u`` (V) taken as applied before it (the effects' states and the history)."""
+        y, u = as_signal("y", y), as_signal("u", u)
+        same_length(y=y, u=u)
+        return self._run(y, u)
+
+
 # -- persistence --
-def save_augmented(model: AugmentedModel, path, *, metadata: dict | None = None) -> Path:
+def save_augmented(model: AugmentedModel | AugmentedInverse, path, *,
+                   metadata: dict | None = None) -> Path:
     """Save an augmented model: ``path`` (JSON: effects, dt_s) and its baseline as a plain
     model file beside it (``<stem>.baseline.json`` + ``.npz``, readable by ``load_model``).
 
+    An :class:`AugmentedInverse` is saved as its whole model, plus its inverse as a plain
+    model file (``<stem>.inverse.json`` + ``.npz``) and the effects it leaves out
+    (``kind`` ``augmented-lssvm-narx-inverse``; :func:`load_augmented` still reads the
+    forward model from it).
+
     Returns the JSON path written.
     """
+    ff = model if isinstance(model, AugmentedInverse) else None
+    model = ff.model if ff is not None else model
     path = Path(path)
     if path.suffix != ".json":
         path = path.with_name(path.name + ".json")
@@ -661,13 +784,19 @@ def save_augmented(model: AugmentedModel, path, *, metadata: dict | None = None)
     doc = {
         "format": AUGMENTED_FORMAT,
         "format_version": AUGMENTED_FORMAT_VERSION,
-        "kind": "augmented-lssvm-narx",
+        "kind": "augmented-lssvm-narx" if ff is None else AUGMENTED_INVERSE_KIND,
         "units": {"input": "V", "output": "mm", "time": "s"},
         "dt_s": model.dt_s,
         "baseline_file": base_path.name,
         "effects": [e.as_dict() for e in model.effects],
         "metadata": metadata or {},
     }
+    if ff is not None:
+        inv_path = save_model(ff.inverse, path.with_name(path.stem + ".inverse.json"),
+                              metadata={"role": "inverse of an augmented model's baseline, in "
+                                                "its baseline space"})
+        doc["inverse_file"] = inv_path.name
+        doc["feedforward_left_out"] = dict(ff.left_out)
     path.write_text(json.dumps(doc, indent=2) + "\n")
     return path
 
@@ -721,18 +850,48 @@ def check_rate(model: AugmentedModel, dt_s: float) -> AugmentedModel:
     return model
 
 
-def load_any_model(path, dt_s: float):
+def load_augmented_inverse(path) -> AugmentedInverse:
+    """Load the feedforward of an augmented model (``ipmc identify --inverse --effects-from``);
+    ``ModelFileError`` naming the file if it holds none."""
+    path = Path(path)
+    model = load_augmented(path)
+    try:
+        doc = json.loads(path.read_text())
+        if doc.get("kind") != AUGMENTED_INVERSE_KIND:
+            raise ModelFileError(f"{path}: an augmented model without a feedforward; make one "
+                                 "with 'ipmc identify --model lssvm-narx --inverse "
+                                 f"--effects-from {path.name} --data RECORD'.")
+        inverse = load_model(path.parent / doc["inverse_file"])
+    except (KeyError, TypeError, AttributeError) as exc:
+        raise ModelFileError(f"{path}: corrupt augmented inverse ({exc!r}).") from None
+    if not isinstance(inverse, InverseNarxModel):
+        raise ModelFileError(f"{path}: its inverse_file holds a {type(inverse).__name__}, not "
+                             "an inverse model.")
+    ff = AugmentedInverse(model, inverse)
+    ff.metadata_ = model.metadata_
+    return ff
+
+
+def load_any_model(path, dt_s: float | None = None):
     """Any model file this package writes, for a record sampled every ``dt_s`` (s): an
-    augmented one (``ipmc diagnose``'s ``model_after.json``) as :class:`AugmentedModel`,
-    checked against the rate (:func:`check_rate`); any other as
+    augmented one (``ipmc diagnose``'s ``model_after.json``) as :class:`AugmentedModel`, and
+    one with a feedforward as :class:`AugmentedInverse`, checked against the rate
+    (:func:`check_rate`, unless ``dt_s`` is None); any other as
     :func:`~ipmc_model.persistence.load_model` gives it (NARX, inverse, Prandtl-Ishlinskii)."""
     try:
-        fmt = json.loads(Path(path).read_text()).get("format")
+        doc = json.loads(Path(path).read_text())
+        fmt, kind = doc.get("format"), doc.get("kind")
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
-        fmt = None  # load_model names what is wrong with the file
-    if fmt == AUGMENTED_FORMAT:
-        return check_rate(load_augmented(path, dt_s), dt_s)
-    return load_model(path)
+        fmt = kind = None  # load_model names what is wrong with the file
+    if fmt != AUGMENTED_FORMAT:
+        return load_model(path)
+    if kind == AUGMENTED_INVERSE_KIND:
+        ff = load_augmented_inverse(path)
+        if dt_s is not None:
+            check_rate(ff.model, dt_s)
+        return ff
+    model = load_augmented(path, dt_s)
+    return model if dt_s is None else check_rate(model, dt_s)
 
 
 # -- fitting the effects --

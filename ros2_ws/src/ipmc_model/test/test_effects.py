@@ -12,6 +12,7 @@ from ipmc_model.effects import (
     EFFECT_NAMES,
     PARAM_MEANING,
     PARAM_UNITS,
+    AugmentedInverse,
     AugmentedModel,
     Effect,
     dead_time_test,
@@ -21,7 +22,9 @@ from ipmc_model.effects import (
     fit_effect,
     fit_frozen_creep,
     fit_frozen_effect,
+    load_any_model,
     load_augmented,
+    load_augmented_inverse,
     mask_model_settling,
     refit_frozen_pair,
     saturation_test,
@@ -253,6 +256,100 @@ def test_save_load_round_trip(tmp_path, base):
     (tmp_path / "bad.json").write_text("{}")
     with pytest.raises(ModelFileError, match="bad.json"):
         load_augmented(tmp_path / "bad.json")
+
+
+@pytest.fixture(scope="module")
+def feedforward(record, base):
+    """An augmented model's feedforward: creep, dead zone and drift around the baseline; the
+    inverse fitted in the baseline space of the part it keeps."""
+    u, y = record
+    m = AugmentedModel(base.baseline, [Effect("creep", tau_s=5.0, gain_mm_per_v=-0.3),
+                                       Effect("dead_zone", width_v=0.1),
+                                       Effect("drift", gain_loss_per_min=0.01,
+                                              offset_mm_per_min=0.0)], base.dt_s)
+    part, _ = m.feedforward_part()
+    inv = part.fit_inverse(u, y, InverseNarxModel(LSSVMRegressor(C=5000.0, sigma=2.0),
+                                                  output_lags=4, lag_step=4, max_rows=300))
+    return AugmentedInverse(m, inv)
+
+
+def test_feedforward_keeps_what_it_can_undo_and_says_why_it_leaves_the_rest(base):
+    effects = [Effect("creep", tau_s=5.0, gain_mm_per_v=-0.3), Effect("drift",
+               gain_loss_per_min=0.01, offset_mm_per_min=0.0), Effect("delay", delay_s=0.1),
+               Effect("rate_dependence", tau_s=0.3), Effect("saturation", limit_mm=5.0),
+               Effect("rate_dependence", tau_s=0.3, gain_mm_per_v_per_s=0.1)]
+    part, left = AugmentedModel(base.baseline, effects, base.dt_s).feedforward_part()
+    # the output form of rate dependence has a state known from the applied voltages
+    assert part.effect_names == ["creep", "saturation", "rate_dependence"]
+    assert part.effects[2].is_rate_output
+    assert set(left) == {"drift", "delay", "rate_dependence"}
+    assert "time" in left["drift"] and "ahead" in left["delay"]
+
+
+def test_feedforward_stepper_goes_on_from_its_history(feedforward, record):
+    """A stepper given the past (desired mm, applied V) from rest gives what the stepper that
+    lived through it gives (a model server's reload)."""
+    u, y = record
+    ref, n, m = y[:600], 600, 400
+    s = feedforward.stepper()
+    out, applied = np.empty(n), np.empty(n)
+    for k in range(n):
+        out[k] = s.step(ref[k])
+        applied[k] = np.clip(out[k], -1.5, 1.5)  # a limit: the applied voltage differs
+        s.record_applied(applied[k])
+    assert np.any(applied != out)
+    s2 = feedforward.stepper(ref[:m], applied[:m])
+    later = []
+    for k in range(m, n):
+        later.append(s2.step(ref[k]))
+        s2.record_applied(applied[k])
+    assert_allclose(later, out[m:], atol=1e-9)
+    # from rest instead, the creep state of the first 4 s is missing
+    s3 = feedforward.stepper()
+    assert abs(s3.step(ref[m]) - out[m]) > 1e-3
+    with pytest.raises(ValueError, match="same length"):
+        feedforward.stepper(ref[:5], applied[:4])
+
+
+def test_feedforward_free_run_and_one_step(feedforward, record):
+    u, y = record
+    L = feedforward.max_lag_
+    free = feedforward.simulate(y, u[:L])
+    assert_allclose(free[:L], u[:L])
+    # a one-step run fed its own free-run voltages is the free run
+    assert_allclose(feedforward.predict(y, free)[L:], free[L:], atol=1e-9)
+    one = feedforward.predict(y, u)
+    assert np.sqrt(np.mean((one - u) ** 2)) < np.sqrt(np.mean(u ** 2))
+    # the creep is undone: the voltages differ from the baseline inverse's alone
+    bare = AugmentedInverse(AugmentedModel(feedforward.model.baseline, [], RATE ** -1),
+                            feedforward.inverse).simulate(y, u[:L])
+    assert np.max(np.abs(bare - free)) > 0.05
+
+
+def test_feedforward_file_round_trip(feedforward, record, tmp_path):
+    u, y = record
+    p = save_augmented(feedforward, tmp_path / "ff.json", metadata={"data": "x.csv"})
+    assert (tmp_path / "ff.inverse.json").exists() and (tmp_path / "ff.baseline.json").exists()
+    ff = load_any_model(p, feedforward.dt_s)
+    assert isinstance(ff, AugmentedInverse)
+    assert ff.effect_names == ["creep", "dead_zone"] and set(ff.left_out) == {"drift"}
+    assert ff.metadata_ == {"data": "x.csv"}
+    assert_allclose(ff.simulate(y[:300]), feedforward.simulate(y[:300]), atol=1e-12)
+    # the same file is the whole forward model for what reads a forward model
+    fwd = load_augmented(p)
+    assert fwd.effect_names == ["creep", "dead_zone", "drift"]
+    with pytest.raises(ValueError, match="identified at 50 Hz, the data are at 100 Hz"):
+        load_any_model(p, 0.01)
+    # a model without a feedforward, a missing or wrong inverse file
+    plain = save_augmented(feedforward.model, tmp_path / "after.json")
+    with pytest.raises(ModelFileError, match="--effects-from after.json"):
+        load_augmented_inverse(plain)
+    (tmp_path / "ff.inverse.json").unlink()
+    with pytest.raises(ModelFileError, match="ff.inverse.json"):
+        load_any_model(p)
+    (tmp_path / "ff.inverse.json").write_text((tmp_path / "ff.baseline.json").read_text())
+    with pytest.raises(ModelFileError, match="not an inverse model"):
+        load_any_model(p)
 
 
 def test_channel_blocks_act_after_the_other_input_effects(record, tmp_path):
