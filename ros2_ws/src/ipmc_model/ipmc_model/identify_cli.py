@@ -16,7 +16,14 @@ from pathlib import Path
 import numpy as np
 
 from .diagnose import input_kind
-from .effects import AugmentedModel, load_any_model
+from .effects import (
+    AugmentedInverse,
+    AugmentedModel,
+    check_rate,
+    load_any_model,
+    load_augmented,
+    save_augmented,
+)
 from .metrics import score
 from .narx import PAPER_C, PAPER_SIGMA, InverseNarxModel, NarxModel
 from .persistence import save_model
@@ -122,7 +129,10 @@ def evaluate_model(model, u, y) -> dict:
         y_free = model.simulate(u)
         y_one = y_free  # no output feedback: one-step equals free run
         skip, target, units = 0, y, "mm"
-    elif isinstance(model, InverseNarxModel):
+    elif isinstance(model, (InverseNarxModel, AugmentedInverse)):
+        # an AugmentedInverse (ipmc identify --inverse --effects-from) runs as the feedforward
+        # does: its effects' states from rest, fed by the voltages it gives (free run) or by
+        # the measured ones (one-step)
         skip = model.max_lag_
         y_free = model.simulate(y, u[:skip])
         y_one = model.predict(y, u)
@@ -171,6 +181,15 @@ def _identify_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="model file to write (.json, + .npz beside it)")
     p.add_argument("--inverse", action="store_true",
                    help="lssvm-narx: identify the inverse model u = h(y, past u) (Eq. 19)")
+    p.add_argument("--effects-from", metavar="MODEL",
+                   help="lssvm-narx --inverse: the feedforward of an augmented model (ipmc "
+                        "diagnose's model_after.json). The inverse is fitted on this record as "
+                        "the model's baseline sees it, and the effects are undone around it "
+                        "step by step: the creep's state is subtracted from the desired "
+                        "displacement; dead zone, asymmetry and saturation are inverted. "
+                        "Drift, delay and channel blocks are left out, with a note. The "
+                        "record must be at the model's sample rate. --out is then an augmented "
+                        "model file that ipmc track and model_server serve as an inverse model")
     p.add_argument("--tune", choices=("abc", "none"), default="abc",
                    help="lssvm-narx: tune C and sigma by ABC (default) or use --C/--sigma")
     p.add_argument("--budget", type=_budget, default=(DEFAULT_SOURCES, DEFAULT_CYCLES),
@@ -238,6 +257,9 @@ def identify_main(argv: list[str] | None = None) -> int:
         # the kind of input kept with the model: ipmc diagnose --model checks a record against it
         meta = {"data": str(args.data), "samples": int(u.size), "rate_hz": float(rec.rate_hz),
                 "input_kind": input_kind(u, float(rec.rate_hz))}
+        if args.effects_from and (args.model != "lssvm-narx" or not args.inverse):
+            raise ValueError("--effects-from makes a feedforward: it needs --model lssvm-narx "
+                             "--inverse")
         if args.model == "pi":
             if args.inverse:
                 raise ValueError("--inverse is for lssvm-narx; a PI model is inverted "
@@ -254,6 +276,9 @@ def identify_main(argv: list[str] | None = None) -> int:
             tune = args.tune == "abc"
             if args.memory_taus and not args.inverse:
                 raise ValueError("--memory-taus is for an inverse model: add --inverse")
+            fit_u, fit_y, augmented = u, y, None
+            if args.effects_from:
+                augmented, fit_u, fit_y = _feedforward_space(args, u, y, rec.dt_s, meta)
             if args.input_lags is None:
                 args.input_lags = DEFAULT_INVERSE_INPUT_LAGS if args.inverse else DEFAULT_LAGS
             if args.output_lags is None:
@@ -264,7 +289,7 @@ def identify_main(argv: list[str] | None = None) -> int:
                 print(f"tuning C, sigma by ABC ({args.budget[0]} sources x {args.budget[1]} "
                       f"cycles, {args.objective} objective)", file=sys.stderr, flush=True)
             model, tuning = identify_lssvm_narx(
-                u, y,
+                fit_u, fit_y,
                 C=None if tune else args.C, sigma=None if tune else args.sigma,
                 input_lags=args.input_lags, output_lags=args.output_lags,
                 lag_step=args.lag_step, inverse=args.inverse, seed=args.seed,
@@ -273,16 +298,41 @@ def identify_main(argv: list[str] | None = None) -> int:
                 max_train_rows=args.max_rows, **_tuning_kwargs(args, tune),
             )
             _report_tuning(args, tuning, meta)
+            if augmented is not None:
+                model = AugmentedInverse(augmented, model)
         result = evaluate_model(model, u, y)
         meta["training_metrics"] = {k: result[k] for k in ("free_run", "one_step", "units",
                                                            "samples_skipped")}
-        path = save_model(model, args.out, metadata=meta)
+        if isinstance(model, AugmentedInverse):
+            path = save_augmented(model, args.out, metadata=meta)
+        else:
+            path = save_model(model, args.out, metadata=meta)
         _print_metrics(result, "training")
         print(f"model written to {path}")
     except ValueError as exc:  # DataError, ModelFileError and bad inputs are ValueErrors
         print(f"ipmc identify: error: {exc}", file=sys.stderr)
         return 1
     return 0
+
+
+def _feedforward_space(args, u, y, dt_s: float, meta: dict):
+    """--effects-from: the augmented model, and the record (u V, y mm) as the baseline of its
+    feedforward part sees it, for the inverse to be fitted on."""
+    model = check_rate(load_augmented(args.effects_from), dt_s)
+    part, left = model.feedforward_part()
+    for name, why in left.items():
+        print(f"{name} left out of the feedforward: {why}", file=sys.stderr)
+    if not part.effects:
+        raise ValueError(f"{args.effects_from} has no effect a feedforward can undo (effects: "
+                         f"{', '.join(model.effect_names) or 'none'}); identify the plain "
+                         "inverse without --effects-from")
+    print(f"fitting the inverse in the baseline space of {args.effects_from} (effects undone: "
+          f"{'; '.join(f'{e.name}: {e.describe()}' for e in part.effects)})", file=sys.stderr,
+          flush=True)
+    meta["effects_from"] = str(args.effects_from)
+    meta["feedforward_effects"] = part.effect_names
+    v, z = part.to_baseline_space(u, y)
+    return model, v, z
 
 
 def _identify_channel_model(args, u, y, dt_s: float, meta: dict) -> NarxModel:
@@ -390,7 +440,7 @@ def write_plots(model, rec, result: dict, out_dir) -> list[Path]:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     t, u, y = rec.t_s, rec.u_v, rec.y_mm
-    inverse = isinstance(model, InverseNarxModel)
+    inverse = isinstance(model, (InverseNarxModel, AugmentedInverse))
     target, unit = (u, "V") if inverse else (y, "mm")
     name = "voltage u" if inverse else "displacement y"
     free, one = result["free_run_output"], result["one_step_output"]

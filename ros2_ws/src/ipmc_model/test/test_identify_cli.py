@@ -226,3 +226,68 @@ def test_identify_refuses_nonpositive_input_memory_taus(tmp_path, csvs, capsys):
                        str(tmp_path / "x.json"), "--input-memory-taus", "0.3", "-1"])
     assert info.value.code == 2
     assert "positive seconds" in capsys.readouterr().err
+
+
+def _augmented(path, csv, dt_s: float, effects):
+    """An augmented model file (as ipmc diagnose writes model_after.json) around a small NARX
+    fitted on the record ``csv``."""
+    from ipmc_driver.dataio import load_record
+    from ipmc_model.effects import AugmentedModel, Effect, save_augmented
+    from ipmc_model.lssvm import LSSVMRegressor
+    from ipmc_model.narx import NarxModel
+
+    rec = load_record(csv)
+    base = NarxModel(LSSVMRegressor(C=100.0, sigma=2.0), input_lags=3,
+                     output_lags=3).fit(rec.u_v, rec.y_mm)
+    return save_augmented(AugmentedModel(base, [Effect(n, **p) for n, p in effects], dt_s),
+                          path)
+
+
+def test_identify_inverse_with_effects_from_writes_the_feedforward(tmp_path, csvs, capsys):
+    from ipmc_model.effects import AugmentedInverse, load_any_model
+
+    train, test = csvs
+    after = _augmented(tmp_path / "model_after.json", train, 0.01,
+                       [("creep", {"tau_s": 2.0, "gain_mm_per_v": -0.2}),
+                        ("drift", {"gain_loss_per_min": 0.0, "offset_mm_per_min": 0.5})])
+    common = ["--data", str(train), "--model", "lssvm-narx", "--inverse", "--tune", "none",
+              "--C", "100", "--sigma", "2"]
+    assert identify_main([*common, "--effects-from", str(after),
+                          "--out", str(tmp_path / "ff.json")]) == 0
+    out, err = capsys.readouterr()
+    assert "drift left out of the feedforward: a trend over the identification record" in err
+    assert "effects undone: creep: tau_s = 2 s" in err
+    assert "training free-run: RMSE" in out and " V," in out
+    ff = load_any_model(tmp_path / "ff.json", 0.01)
+    assert isinstance(ff, AugmentedInverse)
+    assert ff.effect_names == ["creep"] and list(ff.left_out) == ["drift"]
+    assert ff.metadata_["feedforward_effects"] == ["creep"]
+    # the creep is undone around the inverse: not the plain inverse's voltages
+    assert identify_main([*common, "--out", str(tmp_path / "plain.json")]) == 0
+    plain = load_model(tmp_path / "plain.json")
+    y = np.linspace(0.0, 1.0, 300)
+    assert np.max(np.abs(ff.simulate(y) - plain.simulate(y))) > 0.01
+    rc = evaluate_main(["--model", str(tmp_path / "ff.json"), "--data", str(test),
+                        "--json", str(tmp_path / "m.json")])
+    assert rc == 0
+    assert json.loads((tmp_path / "m.json").read_text())["units"] == "V"
+
+
+@pytest.mark.parametrize("case, message", [
+    ("forward", "--effects-from makes a feedforward: it needs --model lssvm-narx --inverse"),
+    ("no effects", "has no effect a feedforward can undo (effects: delay)"),
+    ("rate", "the model was identified at 50 Hz, the data are at 100 Hz"),
+])
+def test_identify_effects_from_refuses_what_gives_no_feedforward(tmp_path, csvs, capsys, case,
+                                                                  message):
+    train, _ = csvs
+    after = _augmented(tmp_path / "after.json", train, 0.02 if case == "rate" else 0.01,
+                       [("delay", {"delay_s": 0.05})] if case == "no effects" else
+                       [("creep", {"tau_s": 2.0, "gain_mm_per_v": -0.2})])
+    args = ["--data", str(train), "--model", "lssvm-narx", "--tune", "none",
+            "--effects-from", str(after), "--out", str(tmp_path / "ff.json")]
+    rc = identify_main(args if case == "forward" else [*args, "--inverse"])
+    assert rc == 1
+    err = capsys.readouterr().err
+    assert message in err
+    assert not (tmp_path / "ff.json").exists()
