@@ -184,6 +184,16 @@ def test_bringup_serves_each_kind_of_feedforward_model_as_model_server_expects(t
     assert feedforward_server_params(str(fwd)) == {"model_file": str(fwd.resolve()),
                                                    "feedforward": "forward-inversion"}
     assert feedforward_server_params(str(inv)) == {"inverse_model_file": str(inv.resolve())}
+    # An augmented model's feedforward (ipmc identify --inverse --effects-from) is an inverse.
+    from ipmc_model.effects import AugmentedModel, Effect, save_augmented
+    from ipmc_model.persistence import load_model
+
+    after = save_augmented(AugmentedModel(load_model(plain), [Effect(
+        "creep", tau_s=20.0, gain_mm_per_v=-0.12)], 0.01), tmp_path / "model_after.json")
+    aug = tmp_path / "aug.json"
+    assert ipmc(["identify", *common, "--inverse", "--output-lags", "2", "--effects-from",
+                 str(after), "--out", str(aug)]) == 0
+    assert feedforward_server_params(str(aug)) == {"inverse_model_file": str(aug.resolve())}
     # Not a feedforward model, or not a model: model_server gets it as the inverse and says why.
     assert feedforward_server_params(str(plain)) == {"inverse_model_file": str(plain.resolve())}
     assert feedforward_server_params(str(tmp_path / "none.json")) == {

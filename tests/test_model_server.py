@@ -399,3 +399,94 @@ def test_a_committee_is_served_as_a_forward_model(tmp_path):
     assert choose_feedforward("auto", forward, None) == "none"
     with pytest.raises(ModelSetError, match="needs a forward model with voltage channels"):
         choose_feedforward("forward-inversion", forward, None)
+
+
+@pytest.fixture(scope="module")
+def creep_feedforward(tmp_path_factory):
+    """An augmented model's feedforward (what 'ipmc identify --inverse --effects-from' writes):
+    the plant's creep around a small inverse, fitted on 30 s of the plant with its creep on."""
+    from ipmc_model.effects import AugmentedInverse, AugmentedModel, Effect, save_augmented
+    from ipmc_model.lssvm import FixedSizeLSSVMRegressor
+    from ipmc_model.narx import InverseNarxModel, NarxModel
+
+    _, u = random_sine(30.0, 100.0, amplitude=2.5, seed=3)
+    run = IpmcPlant(effects=["creep"], seed=3).run(u)
+    reg = FixedSizeLSSVMRegressor(C=100.0, sigma=3.0, n_prototypes=300, seed=0)
+    base = NarxModel(reg, lag_step=5).fit(run.u_v, run.y_mm)
+    model = AugmentedModel(base, [Effect("creep", tau_s=20.0, gain_mm_per_v=-0.12),
+                                  Effect("drift", gain_loss_per_min=0.0,
+                                         offset_mm_per_min=0.1)], 0.01)
+    part, _ = model.feedforward_part()
+    ff = AugmentedInverse(model, part.fit_inverse(run.u_v, run.y_mm,
+                                                  InverseNarxModel(reg, lag_step=5)))
+    d = tmp_path_factory.mktemp("creep")
+    return (ff, save_augmented(ff, d / "feedforward.json"),
+            save_augmented(model, d / "model_after.json"))
+
+
+def test_an_augmented_feedforward_is_served_as_an_inverse_model(creep_feedforward,
+                                                                model_files, tmp_path):
+    from ipmc_model.effects import AugmentedInverse
+    from ipmc_model.nodes.model_server import (
+        ModelSetError,
+        _describe,
+        choose_feedforward,
+        load_model_set,
+    )
+    from ipmc_model.persistence import save_model
+
+    _, ff_file, after_file = creep_feedforward
+    # fresh files: the first test of this module corrupts the fixture's forward.json
+    forward_file = save_model(model_files[0], tmp_path / "forward.json")
+    inverse_file = save_model(model_files[2], tmp_path / "inverse.json")
+    for params in ((str(ff_file),), ("", str(ff_file)), (str(forward_file), str(ff_file))):
+        forward, inverse = load_model_set(*params)
+        assert isinstance(inverse, AugmentedInverse)
+        assert choose_feedforward("auto", forward, inverse) == "inverse"
+    assert _describe(inverse).endswith("with the effects undone around it: creep")
+    # the diagnosis's model itself is not a feedforward: the message says how to make one
+    for params in ((str(after_file),), ("", str(after_file))):
+        with pytest.raises(ModelSetError, match="--effects-from MODEL --data RECORD"):
+            load_model_set(*params)
+    with pytest.raises(ModelSetError, match="both inverse models"):
+        load_model_set(str(inverse_file), str(ff_file))
+
+
+def test_serves_the_feedforward_of_an_augmented_model(creep_feedforward, processes,
+                                                      rclpy_context, spin):
+    """model_server's /ipmc/feedforward is the in-process AugmentedInverse stepper's, the
+    creep's state advanced by the clamped voltages (history_voltage:=clamped)."""
+    ff_model, ff_file, _ = creep_feedforward
+    processes.start_node("model_server", "model_server", {
+        "inverse_model_file": str(ff_file), "history_voltage": "clamped",
+        "u_max_v": 2.0, "diagnostics_period_s": 0.5})
+    probe = Probe(rclpy_context)
+    node = probe.node
+    try:
+        assert spin(node, lambda: probe.pub_ref.get_subscription_count() > 0
+                    and node.count_publishers("/ipmc/feedforward") > 0, 30.0), \
+            processes.log("model_server")
+        spin(node, lambda: False, 0.3)
+        probe.start_driving()
+        assert spin(node, lambda: probe._k >= 800, 30.0)
+        probe._timer.cancel()
+        spin(node, lambda: len(probe.got["feedforward"]) >= len(probe.refs), 5.0)
+        ff = probe.got["feedforward"]
+        assert [_stamp_ns(m) for m in ff] == [s for s, _ in probe.refs]
+        stepper, expected = ff_model.stepper(), []
+        for _, r_mm in probe.refs:
+            expected.append(min(2.0, max(-2.0, stepper.step(r_mm))))
+            stepper.record_applied(expected[-1])
+        np.testing.assert_allclose([m.vector.x for m in ff], expected, rtol=0, atol=1e-9)
+        # the creep's state moved the voltages from the bare inverse's (by 0.024 V at most in
+        # 8 s: the plant's creep is slow, and the clamp hides part of it)
+        bare, plain = ff_model.inverse.stepper(), []
+        for _, r_mm in probe.refs:
+            plain.append(min(2.0, max(-2.0, bare.step(r_mm))))
+            bare.record_applied(plain[-1])
+        assert np.max(np.abs(np.array(expected) - plain)) > 0.01
+        assert spin(node, lambda: probe.latest("model") is not None, 5.0)
+        assert "effects undone around it: creep" in _value(probe.latest("model"), "inverse")
+    finally:
+        node.destroy_node()
+    assert processes.stop("model_server") < GRACE_S

@@ -8,7 +8,9 @@ the ROS graph (separate processes over real DDS, lock-step clock).
 ``--model`` is an inverse model (``ipmc identify --inverse``) or a forward model with voltage
 channels (``ipmc identify --input-memory-taus ...``): the feedforward then inverts the forward
 model sample by sample (``ipmc_model.forward_inversion``), in process and, with ``--graph``, in
-model_server (``feedforward:=forward-inversion``).
+model_server (``feedforward:=forward-inversion``). It may also be an augmented model's
+feedforward (``ipmc identify --inverse --effects-from model_after.json``): the inverse of the
+baseline with the effects ``ipmc diagnose`` found undone around it (a creep's state subtracted).
 
 Both ways run the same loop (``ipmc_control.experiment``), so their RMSEs agree closely; the
 JSON is ``{"rmse_mm", "max_abs_mm", "u_max_v", "duration_s", "samples"}``. Every sample of the
@@ -45,28 +47,35 @@ from .hybrid import MODES
 LOCKSTEP_WAIT_S = 5.0
 # Wall time between "every node is up" and starting the plant, s.
 DISCOVERY_SETTLE_S = 1.0
+# Sample rate of the loop, in process and in the graph (bringup.graph_specs), Hz.
+RATE_HZ = 100.0
 
 
 def load_feedforward(path: str | None, mode: str):
     """The feedforward of a model file, or None in PID mode; ``ValueError`` with one sentence.
 
-    An inverse model is its own feedforward; a forward model with voltage channels gives a
-    ``ForwardInversionFeedforward``; any other model is refused.
+    An inverse model, also an augmented model's feedforward (``ipmc identify --inverse
+    --effects-from``, checked against the loop's rate), is its own feedforward; a forward model
+    with voltage channels gives a ``ForwardInversionFeedforward``; any other model is refused.
     """
     if mode == "pid":
         return None
     why = mode_needs_model(mode, path, "--model")
     if why:
         raise ValueError(why)
+    from ipmc_model.effects import AugmentedInverse, AugmentedModel, load_any_model
     from ipmc_model.forward_inversion import ForwardInversionFeedforward
     from ipmc_model.narx import InverseNarxModel, NarxModel
-    from ipmc_model.persistence import load_model
 
-    model = load_model(path)
-    if isinstance(model, InverseNarxModel):
+    model = load_any_model(path, 1.0 / RATE_HZ)
+    if isinstance(model, (InverseNarxModel, AugmentedInverse)):
         return model
     if isinstance(model, NarxModel) and model.uses_voltage_channels:
         return ForwardInversionFeedforward(model)
+    if isinstance(model, AugmentedModel):
+        raise ValueError(f"{path} is an augmented model (ipmc diagnose), not its feedforward; "
+                         "make that with 'ipmc identify --model lssvm-narx --inverse "
+                         f"--effects-from {path} --data RECORD'")
     raise ValueError(f"{path} holds a {type(model).__name__}, not an inverse model nor a forward "
                      "model with voltage channels; make one with 'ipmc identify --inverse' or "
                      "'ipmc identify --input-memory-taus 0.3 0.5 --no-raw-voltage'")
@@ -80,9 +89,9 @@ def run_in_process(model, reference: str, mode: str, effects: list[str], duratio
                    seed: int = 0):
     from ipmc_driver.plant import IpmcPlant
 
-    plant = IpmcPlant(effects=effects, seed=seed)
+    plant = IpmcPlant(effects=effects, seed=seed, dt_s=1.0 / RATE_HZ)
     return run_tracking(paper_reference(reference), duration_s, mode, inverse=model,
-                        plant=plant)
+                        plant=plant, rate_hz=RATE_HZ)
 
 
 def run_graph(model_path: str | None, reference: str, mode: str, effects: list[str],
@@ -115,7 +124,7 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     bag = work / "bag"
     specs = graph_specs(rig_port=None, lockstep=True, model=model_path if mode != "pid" else None,
                         mode=mode, reference=REFERENCE_KIND[reference], plant_effects=effects,
-                        record=str(bag))
+                        record=str(bag), rate_hz=RATE_HZ)
     for spec in specs:
         if spec.name == "reference":
             spec.params.update(REFERENCE_PARAMS[reference])
@@ -245,9 +254,11 @@ def main(argv: list[str] | None = None) -> int:
         prog="ipmc track",
         description="Track the paper's references on the simulated IPMC with PID, inverse "
                     "feedforward or both (hybrid); in process or through the ROS graph.")
-    parser.add_argument("--model", help="inverse model file (ipmc identify --inverse), or a "
-                                        "forward model with voltage channels (ipmc identify "
-                                        "--input-memory-taus ...), then inverted online")
+    parser.add_argument("--model", help="inverse model file (ipmc identify --inverse; also "
+                                        "with --effects-from: an augmented model's "
+                                        "feedforward), or a forward model with voltage "
+                                        "channels (ipmc identify --input-memory-taus ...), "
+                                        "then inverted online")
     parser.add_argument("--reference", required=True, choices=REFERENCES)
     parser.add_argument("--mode", required=True, choices=MODES)
     parser.add_argument("--graph", action="store_true",

@@ -1,7 +1,8 @@
 """model_server: serves a fitted IPMC model on the graph (feedforward, prediction, residual).
 
 Loads ``model_file`` (forward ``lssvm-narx`` or inverse ``lssvm-narx-inverse``, as written by
-``ipmc identify ... --out MODEL``) and optionally ``inverse_model_file`` (an inverse model);
+``ipmc identify ... --out MODEL``) and optionally ``inverse_model_file`` (an inverse model, or
+an augmented model's feedforward: ``ipmc identify --inverse --effects-from model_after.json``);
 either may be empty, and what needs a missing model is simply not published.
 
 - ``/ipmc/reference`` (PointStamped, x in m) -> ``/ipmc/feedforward`` (Vector3Stamped, x in V,
@@ -53,9 +54,9 @@ from std_srvs.srv import Trigger
 from ipmc_driver.dataio import stamp_ns
 from ipmc_driver.node_runtime import run_node
 from ipmc_driver.qos import DIAGNOSTICS_QOS, PAIRED_SAMPLE_QOS, SAMPLE_QOS
+from ipmc_model.effects import AugmentedInverse, AugmentedModel, load_any_model
 from ipmc_model.forward_inversion import ForwardInversionFeedforward
 from ipmc_model.narx import InverseNarxModel, NarxCommittee, NarxModel
-from ipmc_model.persistence import load_model
 from ipmc_model.residuals import ResidualMonitor
 
 # A sample topic like the others (docs/interfaces.md: reliable, depth 100): at depth 10 a busy
@@ -81,6 +82,10 @@ HISTORY_DEPTH = 256
 DIVERGED_MM = 1e3
 
 
+# What the model server serves as an inverse model (feedforward:=inverse).
+INVERSES = (InverseNarxModel, AugmentedInverse)
+
+
 class ModelSetError(ValueError):
     """A model file cannot be served (unreadable, or of the wrong kind for its parameter)."""
 
@@ -90,7 +95,8 @@ def load_model_set(model_file: str, inverse_model_file: str = ""):
 
     Returns
     -------
-    (forward, inverse) : (NarxModel, NarxCommittee or None; InverseNarxModel or None)
+    (forward, inverse) : (NarxModel, NarxCommittee or None; InverseNarxModel,
+        AugmentedInverse or None)
 
     Raises
     ------
@@ -99,18 +105,18 @@ def load_model_set(model_file: str, inverse_model_file: str = ""):
     """
     forward = inverse = None
     if model_file:
-        m = load_model(model_file)
-        if isinstance(m, InverseNarxModel):
+        m = load_any_model(model_file)
+        if isinstance(m, INVERSES):
             inverse = m
         elif isinstance(m, (NarxModel, NarxCommittee)):
             forward = m
         else:
-            raise ModelSetError(f"{model_file}: a {type(m).__name__} has no step-wise API; the "
-                                "model server serves lssvm-narx (also a committee) and "
-                                "lssvm-narx-inverse models.")
+            raise ModelSetError(f"{model_file}: {_not_served(m)}")
     if inverse_model_file:
-        m = load_model(inverse_model_file)
-        if not isinstance(m, InverseNarxModel):
+        m = load_any_model(inverse_model_file)
+        if isinstance(m, AugmentedModel):
+            raise ModelSetError(f"{inverse_model_file}: {_not_served(m)}")
+        if not isinstance(m, INVERSES):
             hint = (" A forward model with voltage channels goes in model_file: "
                     "feedforward:=auto inverts it." if isinstance(m, NarxModel)
                     and m.uses_voltage_channels else "")
@@ -125,6 +131,17 @@ def load_model_set(model_file: str, inverse_model_file: str = ""):
         raise ModelSetError(f"{model_file}: the forward model takes {forward.n_inputs_} input "
                             "channels; the model server has only the voltage.")
     return forward, inverse
+
+
+def _not_served(model) -> str:
+    """Why the model server cannot serve ``model`` (one sentence)."""
+    if isinstance(model, AugmentedModel):
+        return ("an augmented model (ipmc diagnose) is not served as it is; serve its "
+                "feedforward, made by 'ipmc identify --model lssvm-narx --inverse "
+                "--effects-from MODEL --data RECORD', as inverse_model_file.")
+    return (f"a {type(model).__name__} has no step-wise API; the model server serves "
+            "lssvm-narx (also a committee) and lssvm-narx-inverse models, and augmented "
+            "models' feedforwards.")
 
 
 def choose_feedforward(feedforward: str, forward, inverse) -> str:
@@ -170,6 +187,9 @@ def _stamp_ns(msg) -> int:
 def _describe(model) -> str:
     if model is None:
         return "none"
+    if isinstance(model, AugmentedInverse):
+        effects = ", ".join(model.effect_names)
+        return f"{_describe(model.inverse)} with the effects undone around it: {effects}"
     if isinstance(model, NarxCommittee):
         centres = sum(m.regressor_.centers_.shape[0] for m in model.members)
         return (f"lssvm-narx-committee ({len(model.members)} models, {centres} centres, max lag "
