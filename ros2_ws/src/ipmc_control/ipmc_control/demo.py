@@ -200,14 +200,18 @@ class Demo:
             f"not told to the diagnosis): effects found **{s['effects_found'] or 'none'}**; "
             f"held-out free-run RMSE {s['rmse_before_mm']:.4f} mm before, "
             f"{s['rmse_after_mm']:.4f} mm after. Report: `diagnose/report.md`.", ""]
+        if "creep" in s["effects_found"]:
+            self.creep_feedforward(data, s["model_after"])
         try:
             from ipmc_model.diagnose import creep_hold_experiment
         except ImportError:
             self.summary += ["(The creep-compensated hold is not available in this build.)", ""]
             return
-        self.summary += ["Back into control: the hold with the plant's creep on, hybrid "
-                         "control, before (plain inverse) and after (creep-augmented inverse "
-                         "from the diagnosis); `ipmc_model.diagnose.creep_hold_experiment`.", "",
+        self.summary += ["The same holds from another record of the rig (its own record of "
+                         "steps and its own diagnosis, in Python: "
+                         "`ipmc_model.diagnose.creep_hold_experiment`), hybrid control, before "
+                         "(plain inverse) and after (creep-augmented inverse from the "
+                         "diagnosis), with the fitted creep's 95 % interval:", "",
                          "| hold | creep found (fitted) | RMSE before (mm) | RMSE after (mm) | "
                          "after t >= 2 s, before / after (mm) | inverse alone, before / after "
                          "(mm) | paper (rig) |",
@@ -232,6 +236,32 @@ class Demo:
                 f"| {label} | {found} | {h['rmse_before_mm']:.4f} | {after} | "
                 f"{h['settled_rmse_before_mm']:.4f} / {s_after} | "
                 f"{h['inverse_only_rmse_before_mm']:.4f} / {o_after} | 0.8756 |")
+        self.summary.append("")
+
+    def creep_feedforward(self, data: str, model_after: str) -> None:
+        """Back into control by the commands a lab runs: the diagnosis's model as feedforward."""
+        ff = {"plain": self.path("models", "rig_inverse.json"),
+              "creep": self.path("models", "rig_inverse_creep.json")}
+        self.ipmc("identify", "--data", data, *INVERSE, "--out", ff["plain"])
+        self.ipmc("identify", "--data", data, *INVERSE, "--effects-from", model_after,
+                  "--out", ff["creep"])
+        self.summary += ["Back into control by the commands a lab runs: `ipmc identify` of the "
+                         "demo's inverse on `data/rig_creep.csv`, plain and with "
+                         "`--effects-from diagnose/model_after.json` (the creep undone around "
+                         "the inverse: `models/rig_inverse_creep.json`), then `ipmc track "
+                         "--plant-effect creep` (60 s holds, RMSE in mm, every sample counts):",
+                         "", "| hold | mode | plain inverse | creep undone |", "|---|---|---|---|"]
+        for ref, label in (("constant-reachable", "-3 mm"),
+                           ("constant", "-4 mm (at the 3 V limit)")):
+            for mode in ("inverse", "hybrid"):
+                rmse = {}
+                for name, model in ff.items():
+                    js = self.path("tracking", f"rig_{ref}_{mode}_{name}.json")
+                    self.ipmc("track", "--model", model, "--reference", ref, "--mode", mode,
+                              "--plant-effect", "creep", "--json", js)
+                    rmse[name] = json.loads(Path(js).read_text())["rmse_mm"]
+                self.summary.append(f"| {label} | {mode} | {rmse['plain']:.4f} | "
+                                    f"{rmse['creep']:.4f} |")
         self.summary.append("")
 
 
