@@ -24,13 +24,10 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-# The demo's inverse recipe (ipmc_control.demo.INVERSE) without its --prototypes.
-INVERSE = ["--model", "lssvm-narx", "--inverse", "--tune", "none", "--C", "1e4", "--sigma", "2",
-           "--input-lags", "0", "--output-lags", "10", "--lag-step", "2", "--memory-taus", "1.0"]
-
 
 def feedforwards(seed: int, seconds: float, prototypes: int, out: Path) -> dict[str, Path]:
     """The plain and the creep-undone feedforward files of one record."""
+    from ipmc_control.demo import INVERSE  # the demo's inverse recipe (docs/control.md)
     from ipmc_driver.dataio import Record, save_csv
     from ipmc_driver.plant import IpmcPlant, load_plant_params
     from ipmc_driver.signals import random_steps
@@ -47,6 +44,7 @@ def feedforwards(seed: int, seconds: float, prototypes: int, out: Path) -> dict[
                      input_lags=12, output_lags=0, lag_step=10).fit(run.u_v, run.y_mm)
     creep = Effect("creep", **load_plant_params()["effects"]["creep"])
     after = save_augmented(AugmentedModel(base, [creep], 0.01), out / "model_after.json")
+    # (the last --prototypes wins over the recipe's)
     common = ["--data", str(out / "rig.csv"), *INVERSE, "--prototypes", str(prototypes)]
     files = {"plain": out / "plain.json", "creep": out / "creep.json"}
     if identify_main([*common, "--out", str(files["plain"])]) or identify_main(

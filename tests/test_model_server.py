@@ -127,6 +127,16 @@ class Probe:
         return found[-1] if found else None
 
 
+def _served(stepper, refs, u_max_v: float = 3.0) -> list[float]:
+    """What model_server with history_voltage:=clamped serves for the references (stamp, mm):
+    each step's voltage limited to u_max_v, recorded as applied."""
+    out = []
+    for _, r_mm in refs:
+        out.append(min(u_max_v, max(-u_max_v, stepper.step(r_mm))))
+        stepper.record_applied(out[-1])
+    return out
+
+
 def _value(status, key: str) -> str:
     return {kv.key: kv.value for kv in status.values}[key]
 
@@ -161,12 +171,7 @@ def test_serves_feedforward_prediction_residual_and_reload(
         assert [_stamp_ns(m) for m in ff] == [s for s, _ in probe.refs]
         u_ff = np.array([m.vector.x for m in ff])
         assert np.all(np.abs(u_ff) <= U_MAX_V)
-        stepper = inverse.stepper()
-        expected = []
-        for _, r_mm in probe.refs:
-            u = min(U_MAX_V, max(-U_MAX_V, stepper.step(r_mm)))
-            stepper.record_applied(u)
-            expected.append(u)
+        expected = _served(inverse.stepper(), probe.refs, U_MAX_V)
         np.testing.assert_allclose(u_ff, expected, rtol=0, atol=1e-9)
         assert np.sum(np.abs(u_ff) == U_MAX_V) > 0, "the clamp should have acted"
 
@@ -330,11 +335,7 @@ def test_serves_feedforward_by_inverting_a_forward_model(
         # One feedforward per reference, same stamps, the in-process forward inversion's values.
         ff = probe.got["feedforward"]
         assert [_stamp_ns(m) for m in ff] == [s for s, _ in probe.refs]
-        stepper = ForwardInversionFeedforward(model).stepper()
-        expected = []
-        for _, r_mm in probe.refs:
-            expected.append(stepper.step(r_mm))
-            stepper.record_applied(expected[-1])
+        expected = _served(ForwardInversionFeedforward(model).stepper(), probe.refs)
         # (1e-6 V: the batched kernel rows round differently from one process to another)
         np.testing.assert_allclose([m.vector.x for m in ff], expected, rtol=0, atol=1e-6)
         assert max(abs(m.vector.x) for m in ff) <= 3.0
@@ -473,17 +474,11 @@ def test_serves_the_feedforward_of_an_augmented_model(creep_feedforward, process
         spin(node, lambda: len(probe.got["feedforward"]) >= len(probe.refs), 5.0)
         ff = probe.got["feedforward"]
         assert [_stamp_ns(m) for m in ff] == [s for s, _ in probe.refs]
-        stepper, expected = ff_model.stepper(), []
-        for _, r_mm in probe.refs:
-            expected.append(min(2.0, max(-2.0, stepper.step(r_mm))))
-            stepper.record_applied(expected[-1])
+        expected = _served(ff_model.stepper(), probe.refs, 2.0)
         np.testing.assert_allclose([m.vector.x for m in ff], expected, rtol=0, atol=1e-9)
         # the creep's state moved the voltages from the bare inverse's (by 0.024 V at most in
         # 8 s: the plant's creep is slow, and the clamp hides part of it)
-        bare, plain = ff_model.inverse.stepper(), []
-        for _, r_mm in probe.refs:
-            plain.append(min(2.0, max(-2.0, bare.step(r_mm))))
-            bare.record_applied(plain[-1])
+        plain = _served(ff_model.inverse.stepper(), probe.refs, 2.0)
         assert np.max(np.abs(np.array(expected) - plain)) > 0.01
         assert spin(node, lambda: probe.latest("model") is not None, 5.0)
         assert "effects undone around it: creep" in _value(probe.latest("model"), "inverse")
