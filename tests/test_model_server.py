@@ -103,6 +103,19 @@ class Probe:
         self.refs.append((_stamp_ns(msg), r_mm))
         self.pub_ref.publish(msg)
 
+    def drive(self, spin, samples: int, timeout_s: float) -> list:
+        """Publish a command and a reference every period for ``samples`` periods (within
+        ``timeout_s`` s), wait for the feedforwards; check there is one per reference, with its
+        stamp, and return them."""
+        spin(self.node, lambda: False, 0.3)   # let the reader side of every match settle
+        self.start_driving()
+        assert spin(self.node, lambda: self._k >= samples, timeout_s)
+        self._timer.cancel()
+        spin(self.node, lambda: len(self.got["feedforward"]) >= len(self.refs), 5.0)
+        ff = self.got["feedforward"]
+        assert [_stamp_ns(m) for m in ff] == [s for s, _ in self.refs]
+        return ff
+
     def call_reload(self, call, timeout_s: float = 10.0):
         from std_srvs.srv import Trigger
 
@@ -160,15 +173,8 @@ def test_serves_feedforward_prediction_residual_and_reload(
 
         assert spin(node, matched, 30.0), (
             "graph did not come up:\n" + processes.log("model_server"))
-        spin(node, lambda: False, 0.3)   # let the reader side of every match settle
-        probe.start_driving()
-        assert spin(node, lambda: probe._k >= RUN_S * RATE_HZ, RUN_S + 20.0)
-        probe._timer.cancel()
-        spin(node, lambda: len(probe.got["feedforward"]) >= len(probe.refs), 5.0)
-
         # (1) Feedforward: one per reference, same stamps, |u| <= 3 V, the in-process values.
-        ff = probe.got["feedforward"]
-        assert [_stamp_ns(m) for m in ff] == [s for s, _ in probe.refs]
+        ff = probe.drive(spin, int(RUN_S * RATE_HZ), RUN_S + 20.0)
         u_ff = np.array([m.vector.x for m in ff])
         assert np.all(np.abs(u_ff) <= U_MAX_V)
         expected = _served(inverse.stepper(), probe.refs, U_MAX_V)
@@ -327,14 +333,8 @@ def test_serves_feedforward_by_inverting_a_forward_model(
                     and probe.pub_cmd.get_subscription_count() > 0
                     and node.count_publishers("/ipmc/feedforward") > 0
                     and len(probe.got["residual"]) > 0, 30.0), processes.log("model_server")
-        spin(node, lambda: False, 0.3)
-        probe.start_driving()
-        assert spin(node, lambda: probe._k >= 500, 25.0)
-        probe._timer.cancel()
-        spin(node, lambda: len(probe.got["feedforward"]) >= len(probe.refs), 5.0)
         # One feedforward per reference, same stamps, the in-process forward inversion's values.
-        ff = probe.got["feedforward"]
-        assert [_stamp_ns(m) for m in ff] == [s for s, _ in probe.refs]
+        ff = probe.drive(spin, 500, 25.0)
         expected = _served(ForwardInversionFeedforward(model).stepper(), probe.refs)
         # (1e-6 V: the batched kernel rows round differently from one process to another)
         np.testing.assert_allclose([m.vector.x for m in ff], expected, rtol=0, atol=1e-6)
@@ -467,13 +467,7 @@ def test_serves_the_feedforward_of_an_augmented_model(creep_feedforward, process
         assert spin(node, lambda: probe.pub_ref.get_subscription_count() > 0
                     and node.count_publishers("/ipmc/feedforward") > 0, 30.0), \
             processes.log("model_server")
-        spin(node, lambda: False, 0.3)
-        probe.start_driving()
-        assert spin(node, lambda: probe._k >= 800, 30.0)
-        probe._timer.cancel()
-        spin(node, lambda: len(probe.got["feedforward"]) >= len(probe.refs), 5.0)
-        ff = probe.got["feedforward"]
-        assert [_stamp_ns(m) for m in ff] == [s for s, _ in probe.refs]
+        ff = probe.drive(spin, 800, 30.0)
         expected = _served(ff_model.stepper(), probe.refs, 2.0)
         np.testing.assert_allclose([m.vector.x for m in ff], expected, rtol=0, atol=1e-9)
         # the creep's state moved the voltages from the bare inverse's (by 0.024 V at most in
