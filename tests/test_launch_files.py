@@ -193,7 +193,12 @@ def test_bringup_serves_each_kind_of_feedforward_model_as_model_server_expects(t
     aug = tmp_path / "aug.json"
     assert ipmc(["identify", *common, "--inverse", "--output-lags", "2", "--effects-from",
                  str(after), "--out", str(aug)]) == 0
-    assert feedforward_server_params(str(aug)) == {"inverse_model_file": str(aug.resolve())}
+    params = feedforward_server_params(str(aug))
+    assert params == {"inverse_model_file": str(aug.resolve())}
+    from ipmc_model.effects import AugmentedInverse
+    from ipmc_model.nodes.model_server import load_model_set
+
+    assert isinstance(load_model_set("", params["inverse_model_file"])[1], AugmentedInverse)
     # Not a feedforward model, or not a model: model_server gets it as the inverse and says why.
     assert feedforward_server_params(str(plain)) == {"inverse_model_file": str(plain.resolve())}
     assert feedforward_server_params(str(tmp_path / "none.json")) == {

@@ -121,10 +121,12 @@ class Graph:
 def feedforward_server_params(model: str) -> dict:
     """model_server parameters that serve the model file ``model`` as the feedforward.
 
-    An inverse model (``ipmc identify --inverse``) goes to ``inverse_model_file``; a forward
-    model with voltage channels (``ipmc identify --input-memory-taus ...``) to ``model_file``
-    with ``feedforward:=forward-inversion`` (it also serves predictions and the residual). A
-    file that cannot be read goes to ``inverse_model_file``: model_server then says why.
+    An inverse model (``ipmc identify --inverse``, also an augmented model's feedforward from
+    ``--effects-from``) goes to ``inverse_model_file``; a forward model with voltage channels
+    (``ipmc identify --input-memory-taus ...``) to ``model_file`` with
+    ``feedforward:=forward-inversion`` (it also serves predictions and the residual). Any
+    other file, or one that cannot be read, goes to ``inverse_model_file``: model_server then
+    says why.
     """
     from ipmc_model.persistence import ModelFileError, read_model_document
 

@@ -801,6 +801,32 @@ def save_augmented(model: AugmentedModel | AugmentedInverse, path, *,
     return path
 
 
+def _read_json(path: Path):
+    """The JSON document of a model file; ``ModelFileError`` if there is none."""
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ModelFileError(f"{path}: no such model file.") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        raise ModelFileError(f"{path}: not a model file (not readable JSON).") from None
+
+
+def _augmented_from(path: Path, doc: dict) -> AugmentedModel:
+    """The augmented model of the document ``doc`` read from ``path``."""
+    if not isinstance(doc.get("format_version"), int) or \
+            doc["format_version"] > AUGMENTED_FORMAT_VERSION:
+        raise ModelFileError(f"{path}: unsupported augmented format version "
+                             f"{doc.get('format_version')!r}.")
+    try:
+        base = load_model(path.parent / doc["baseline_file"])
+        effects = [Effect(e["name"], **e["params"]) for e in doc["effects"]]
+        m = AugmentedModel(base, effects, float(doc["dt_s"]))
+    except (KeyError, TypeError) as exc:
+        raise ModelFileError(f"{path}: corrupt augmented model ({exc!r}).") from None
+    m.metadata_ = doc.get("metadata", {})
+    return m
+
+
 def load_augmented(path, dt_s: float | None = None) -> AugmentedModel:
     """Load a model file as an :class:`AugmentedModel`.
 
@@ -809,25 +835,9 @@ def load_augmented(path, dt_s: float | None = None) -> AugmentedModel:
     metadata's ``rate_hz``, or 0.01 s). Anything else raises ``ModelFileError``.
     """
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ModelFileError(f"{path}: no such model file.") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        raise ModelFileError(f"{path}: not a model file (not readable JSON).") from None
+    doc = _read_json(path)
     if isinstance(doc, dict) and doc.get("format") == AUGMENTED_FORMAT:
-        if not isinstance(doc.get("format_version"), int) or \
-                doc["format_version"] > AUGMENTED_FORMAT_VERSION:
-            raise ModelFileError(f"{path}: unsupported augmented format version "
-                                 f"{doc.get('format_version')!r}.")
-        try:
-            base = load_model(path.parent / doc["baseline_file"])
-            effects = [Effect(e["name"], **e["params"]) for e in doc["effects"]]
-            m = AugmentedModel(base, effects, float(doc["dt_s"]))
-        except (KeyError, TypeError) as exc:
-            raise ModelFileError(f"{path}: corrupt augmented model ({exc!r}).") from None
-        m.metadata_ = doc.get("metadata", {})
-        return m
+        return _augmented_from(path, doc)
     read_model_document(path)  # raises ModelFileError with the reason if not a model file
     base = load_model(path)
     if not isinstance(base, (NarxModel, NarxCommittee)):
@@ -850,19 +860,22 @@ def check_rate(model: AugmentedModel, dt_s: float) -> AugmentedModel:
     return model
 
 
-def load_augmented_inverse(path) -> AugmentedInverse:
-    """Load the feedforward of an augmented model (``ipmc identify --inverse --effects-from``);
-    ``ModelFileError`` naming the file if it holds none."""
+def load_augmented_inverse(path, doc: dict | None = None) -> AugmentedInverse:
+    """Load the feedforward of an augmented model (``ipmc identify --inverse --effects-from``;
+    ``doc``: its JSON document, if already read); ``ModelFileError`` naming the file if it
+    holds none."""
     path = Path(path)
-    model = load_augmented(path)
+    doc = _read_json(path) if doc is None else doc
+    if not isinstance(doc, dict) or doc.get("format") != AUGMENTED_FORMAT:
+        raise ModelFileError(f"{path}: not an augmented model file.")
+    if doc.get("kind") != AUGMENTED_INVERSE_KIND:
+        raise ModelFileError(f"{path}: an augmented model without a feedforward; make one "
+                             "with 'ipmc identify --model lssvm-narx --inverse "
+                             f"--effects-from {path.name} --data RECORD'.")
+    model = _augmented_from(path, doc)
     try:
-        doc = json.loads(path.read_text())
-        if doc.get("kind") != AUGMENTED_INVERSE_KIND:
-            raise ModelFileError(f"{path}: an augmented model without a feedforward; make one "
-                                 "with 'ipmc identify --model lssvm-narx --inverse "
-                                 f"--effects-from {path.name} --data RECORD'.")
         inverse = load_model(path.parent / doc["inverse_file"])
-    except (KeyError, TypeError, AttributeError) as exc:
+    except (KeyError, TypeError) as exc:
         raise ModelFileError(f"{path}: corrupt augmented inverse ({exc!r}).") from None
     if not isinstance(inverse, InverseNarxModel):
         raise ModelFileError(f"{path}: its inverse_file holds a {type(inverse).__name__}, not "
@@ -878,19 +891,19 @@ def load_any_model(path, dt_s: float | None = None):
     one with a feedforward as :class:`AugmentedInverse`, checked against the rate
     (:func:`check_rate`, unless ``dt_s`` is None); any other as
     :func:`~ipmc_model.persistence.load_model` gives it (NARX, inverse, Prandtl-Ishlinskii)."""
+    path = Path(path)
     try:
-        doc = json.loads(Path(path).read_text())
-        fmt, kind = doc.get("format"), doc.get("kind")
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
-        fmt = kind = None  # load_model names what is wrong with the file
-    if fmt != AUGMENTED_FORMAT:
+        doc = _read_json(path)
+    except ModelFileError:
+        doc = None  # load_model names what is wrong with the file
+    if not isinstance(doc, dict) or doc.get("format") != AUGMENTED_FORMAT:
         return load_model(path)
-    if kind == AUGMENTED_INVERSE_KIND:
-        ff = load_augmented_inverse(path)
+    if doc.get("kind") == AUGMENTED_INVERSE_KIND:
+        ff = load_augmented_inverse(path, doc)
         if dt_s is not None:
             check_rate(ff.model, dt_s)
         return ff
-    model = load_augmented(path, dt_s)
+    model = _augmented_from(path, doc)
     return model if dt_s is None else check_rate(model, dt_s)
 
 

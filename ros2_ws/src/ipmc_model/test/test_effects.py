@@ -321,7 +321,7 @@ def test_feedforward_free_run_and_one_step(feedforward, record):
     one = feedforward.predict(y, u)
     assert np.sqrt(np.mean((one - u) ** 2)) < np.sqrt(np.mean(u ** 2))
     # the creep is undone: the voltages differ from the baseline inverse's alone
-    bare = AugmentedInverse(AugmentedModel(feedforward.model.baseline, [], RATE ** -1),
+    bare = AugmentedInverse(AugmentedModel(feedforward.model.baseline, [], feedforward.dt_s),
                             feedforward.inverse).simulate(y, u[:L])
     assert np.max(np.abs(bare - free)) > 0.05
 
