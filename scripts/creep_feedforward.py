@@ -3,15 +3,18 @@ model (``ipmc identify --inverse --effects-from model_after.json``) against the 
 on the plant with its creep.
 
     .venv/bin/python scripts/creep_feedforward.py --seeds 4 5 6 7 [--seconds 300]
-        [--prototypes 800] [--out DIR]
+        [--prototypes 800] [--history-voltage clamped applied] [--out DIR]
 
 Per seed: a record of random 2.5 V steps held 0.5-5 s on the plant with its creep (the demo's
 rig data); ``model_after.json`` holds the plant's own creep (what the diagnosis finds,
 tests/test_creep_hold.py) around a small forward NARX; the demo's inverse recipe identified
 plain and with ``--effects-from``; then 60 s holds (-3 mm, and -4 mm at the 3 V limit) in
 process, inverse alone and hybrid, and a 30 s hybrid sine. Prints, per run, the whole-run
-RMSE, the RMSE after 2 s and the mean error over the last 10 s (mm). docs/diagnose.md,
-"Control: inverse of baseline + creep", has the table (session 39).
+RMSE, the RMSE after 2 s and the mean error over the last 10 s (mm), for each voltage the
+feedforward takes as applied (``--history-voltage``: its own limited to 3 V, as ``ipmc
+track``, or the plant's, PID included, as model_server's default on the rig; it drives the
+creep state). docs/diagnose.md, "Control: inverse of baseline + creep", has the tables
+(sessions 39 and 40).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
+from itertools import product
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +62,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", type=int, nargs="+", default=[4, 5, 6, 7])
     p.add_argument("--seconds", type=float, default=300.0, help="record length (default 300)")
     p.add_argument("--prototypes", type=int, default=800, help="the inverse's (default 800)")
+    p.add_argument("--history-voltage", nargs="+", default=["clamped"],
+                   choices=["clamped", "applied"],
+                   help="the voltage the feedforward takes as applied (default clamped)")
     p.add_argument("--out", help="folder for the records and models (default: a temporary one)")
     args = p.parse_args(argv)
     from ipmc_control.experiment import paper_reference, run_tracking
@@ -75,11 +82,13 @@ def main(argv: list[str] | None = None) -> int:
             ff = {name: load_feedforward(str(f), "hybrid") for name, f in files.items()}
             for ref, mode, dur in runs:
                 cells = []
-                for name, model in ff.items():
+                for (name, model), hist in product(ff.items(), args.history_voltage):
                     r = run_tracking(paper_reference(ref), dur, mode, inverse=model,
-                                     plant=IpmcPlant(effects=["creep"], seed=100))
+                                     plant=IpmcPlant(effects=["creep"], seed=100),
+                                     history_voltage=hist)
                     e, t = r.reference_mm - r.y_mm, r.t_s
-                    cells.append(f"{name} {np.sqrt(np.mean(e ** 2)):.4f} / "
+                    label = name if len(args.history_voltage) == 1 else f"{name}/{hist}"
+                    cells.append(f"{label} {np.sqrt(np.mean(e ** 2)):.4f} / "
                                  f"{np.sqrt(np.mean(e[t >= 2.0] ** 2)):.4f} / "
                                  f"{np.mean(e[t >= dur - 10.0]):+.3f}")
                 print(f"{seed} {ref} {mode}: {' | '.join(cells)}", flush=True)

@@ -13,10 +13,11 @@ The feedforward looks one sample ahead (it aims at r_k, which u_k produces); the
 comparing r_k with y_{k-1} would add K (r_k - r_{k-1}) to every command, a lead the feedforward
 already provides (0.025 mm of error on the random sine even with a perfect feedforward).
 
-The feedforward is a filter of the reference alone (the inverse model's history holds the
-desired displacements and its own voltages limited to 3 V: the model server's
+By default the feedforward is a filter of the reference alone (the inverse model's history
+holds the desired displacements and its own voltages limited to 3 V: the model server's
 ``history_voltage:=clamped``), so it can be computed from the reference topic without seeing
-the controller.
+the controller. ``history_voltage="applied"`` gives it the voltage the plant got instead (PID
+included, the rig's default), ``"model"`` its own unlimited output.
 """
 
 from __future__ import annotations
@@ -25,6 +26,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from ipmc_model.narx import HISTORY_VOLTAGES
 
 from .hybrid import HybridController, check_mode
 from .pid import PID
@@ -93,7 +96,8 @@ def tracking_summary(t_s, reference_mm, y_mm, u_v) -> dict:
 
 def run_tracking(reference: Reference, duration_s: float, mode: str, *, inverse=None,
                  plant=None, pid: PID | None = None, rate_hz: float = 100.0,
-                 use_reference_rate: bool = True) -> TrackResult:
+                 use_reference_rate: bool = True, history_voltage: str = "clamped"
+                 ) -> TrackResult:
     """Run the closed (or open) loop on ``plant`` for ``duration_s``.
 
     Parameters
@@ -110,8 +114,15 @@ def run_tracking(reference: Reference, duration_s: float, mode: str, *, inverse=
     use_reference_rate : bool
         Give the PID the reference's rate, so its derivative acts on the error (Eq. 21) as the
         controller node does by default; False: derivative on the measurement alone.
+    history_voltage : {"clamped", "applied", "model"}
+        What the feedforward takes as applied after each step (its voltage history and an
+        augmented feedforward's creep state): its own output limited to 3 V, the voltage the
+        plant got (PID included), or its own output as returned.
     """
     mode = check_mode(mode)
+    if history_voltage not in HISTORY_VOLTAGES:
+        raise ValueError(f"history_voltage must be one of {HISTORY_VOLTAGES}, "
+                         f"got {history_voltage!r}")
     if mode != "pid" and inverse is None:
         raise ValueError(f"mode '{mode}' needs an inverse model (ipmc identify --inverse)")
     if plant is None:
@@ -132,11 +143,14 @@ def run_tracking(reference: Reference, duration_s: float, mode: str, *, inverse=
     for k in range(n):
         if ff_stepper is not None:
             ff[k] = max(-3.0, min(3.0, ff_stepper.step(r[k])))
-            ff_stepper.record_applied(ff[k])  # the voltage history holds what can be applied
+            if history_voltage != "model":
+                ff_stepper.record_applied(ff[k])  # what can be applied
         j = max(k - 1, 0)   # the instant of y_last (the reference's first sample at rest)
         cmd = ctrl.compute_command(r[j], y_last, dt, ff[k] if ff_stepper is not None else None,
                                    None if r_rate is None else r_rate[j])
         u[k], y[k] = plant.step(cmd)
+        if ff_stepper is not None and history_voltage == "applied":
+            ff_stepper.record_applied(u[k])  # as model_server does before the next step
         y_last = y[k]
     return TrackResult(t_s=t, reference_mm=r, y_mm=y, u_v=u, feedforward_v=ff)
 

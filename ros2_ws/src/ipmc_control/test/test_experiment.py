@@ -91,6 +91,46 @@ def test_a_model_mode_needs_an_inverse():
         run_tracking(SINE, 1.0, "hybrid", plant=LagPlant())
 
 
+class RecordingInverse(ExactInverse):
+    """ExactInverse scaled up so the 3 V limit clips it, its stepper noting what it returns
+    and what it is told was applied at each step."""
+
+    def stepper(self):
+        inner, log = super().stepper(), []
+        self.log = log
+
+        class Stepper:
+            def step(self, r_mm: float) -> float:
+                log.append({"returned": inner.step(r_mm), "applied": []})
+                return log[-1]["returned"]
+
+            def record_applied(self, u_v: float) -> None:
+                log[-1]["applied"].append(u_v)
+
+        return Stepper()
+
+
+@pytest.mark.parametrize("history", ["clamped", "applied", "model"])
+def test_the_feedforward_is_told_the_voltage_its_history_holds(history):
+    # What each step leaves in the history: the last voltage recorded after it, or the
+    # returned one when nothing is recorded (model_server's history_voltage).
+    inverse = RecordingInverse(1.0)
+    res = run_tracking(SINE, 4.0, "hybrid", inverse=inverse, plant=LagPlant(),
+                       history_voltage=history)
+    held = np.array([s["applied"][-1] if s["applied"] else s["returned"] for s in inverse.log])
+    returned = np.array([s["returned"] for s in inverse.log])
+    assert np.any(np.abs(returned) > 3.0) and np.any(res.u_v != res.feedforward_v)
+    expected = {"clamped": np.clip(returned, -3.0, 3.0), "applied": res.u_v,
+                "model": returned}[history]
+    np.testing.assert_array_equal(held, expected)
+
+
+def test_an_unknown_history_voltage_is_refused():
+    with pytest.raises(ValueError, match="history_voltage must be one of"):
+        run_tracking(SINE, 1.0, "hybrid", inverse=ExactInverse(), plant=LagPlant(),
+                     history_voltage="measured")
+
+
 def test_default_pid_holds_near_the_voltage_limit_without_a_noise_offset():
     """-4 mm needs about 3 V late in a hold with creep. With N = 10 the laser noise through the
     derivative put a 0.12 V ripple on the command, its peaks clipped (79 % of samples) and

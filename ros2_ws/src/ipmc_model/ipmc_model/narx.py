@@ -805,6 +805,12 @@ class InverseNarxModel:
         }
 
 
+#: What a feedforward's voltage history holds after each step: the voltage that reached the
+#: actuator (PID included), the feedforward's own output limited to the actuator's range, or
+#: its own output as returned (model_server's ``history_voltage``, ``run_tracking``'s).
+HISTORY_VOLTAGES = ("applied", "clamped", "model")
+
+
 class InverseStepper:
     """The inverse model one sample at a time: ``step(y_desired_mm) -> u_v``.
 

@@ -56,7 +56,7 @@ from ipmc_driver.node_runtime import run_node
 from ipmc_driver.qos import DIAGNOSTICS_QOS, PAIRED_SAMPLE_QOS, SAMPLE_QOS
 from ipmc_model.effects import AugmentedInverse, AugmentedModel, load_any_model
 from ipmc_model.forward_inversion import ForwardInversionFeedforward
-from ipmc_model.narx import InverseNarxModel, NarxCommittee, NarxModel
+from ipmc_model.narx import HISTORY_VOLTAGES, InverseNarxModel, NarxCommittee, NarxModel
 from ipmc_model.residuals import ResidualMonitor
 
 # A sample topic like the others (docs/interfaces.md: reliable, depth 100): at depth 10 a busy
@@ -66,7 +66,6 @@ from ipmc_model.residuals import ResidualMonitor
 FEEDFORWARD_QOS = PAIRED_SAMPLE_QOS
 HARDWARE_ID = "ipmc"
 U_LIMIT_V = 3.0  # the actuators' safe limit (paper section 2.1); u_max_v may only be lower
-HISTORY_VOLTAGES = ("applied", "clamped", "model")
 FEEDFORWARDS = ("auto", "inverse", "forward-inversion")
 MONITOR_RESIDUALS = ("one_step", "free_run")
 MONITOR_TESTS = ("auto", "drift", "whiteness", "both")
