@@ -1922,13 +1922,15 @@ FIGURE_CAPTIONS = {
     "residual_spectrum.png": "Power spectrum of the held-out free-run residual, before and "
     "after: a missing slow effect (creep, drift) shows at the lowest frequencies.",
     "creep_holds.png": f"The held-out input holds of at least {FIGURE_HOLD_MIN_S:g} s, from "
-    f"{CREEP_HOLD_SKIP_S:g} s into each (the plant's fast settling before that is no creep): "
-    "left, the residual before (solid) beside the drift the fitted creep predicts (dashed); "
-    "right, the final model's residual, with the creep in it if it was accepted. What drifts "
-    "on the right is left unexplained. On short holds much of what moves is the plant's "
-    "settling after the step, which the baseline misses and the hold test takes off each hold "
-    f"(an exponential of {min(CREEP_FAST_TAUS_S):g}-{max(CREEP_FAST_TAUS_S):g} s) before it "
-    "compares the drift with the creep's.",
+    f"{CREEP_HOLD_SKIP_S:g} s into each (the plant's fast settling before that is no creep). "
+    "Top: left, the residual before (solid) beside the drift the fitted creep predicts "
+    "(dashed); right, the final model's residual, with the creep in it if it was accepted. On "
+    "short holds much of what moves is the plant's settling after the step, which the "
+    "baseline misses. Bottom: what the hold test compares, the residual against the creep's "
+    "predicted drift, both with that settling (an exponential of "
+    f"{min(CREEP_FAST_TAUS_S):g}-{max(CREEP_FAST_TAUS_S):g} s, as the creep's fit chose) and "
+    "each hold's level taken off, as bin means over the holds: on the dashed line the "
+    "residual drifts as the creep predicts, on zero it is left no drift to explain.",
 }
 
 
@@ -1944,13 +1946,29 @@ def shown_creep(d: Diagnosis) -> tuple[Effect, bool] | None:
     return None
 
 
-def hold_segments(d: Diagnosis, creep: Effect) -> list[dict]:
+def shown_fast_tau_s(d: Diagnosis) -> float:
+    """Time constant (s) of the fast settling the creep's hold fit took off each hold (the
+    accepted creep's, else the latest creep candidate's that has one); the middle of
+    :data:`~ipmc_model.effects.CREEP_FAST_TAUS_S` without one."""
+    fits = [c for c in d.candidates if c.effect == "creep"
+            and c.evidence.get("creep_fit", {}).get("fast_tau_s") is not None]
+    fits = [c for c in fits if c.accepted] or fits
+    if not fits:
+        return float(np.median(CREEP_FAST_TAUS_S))
+    return float(fits[-1].evidence["creep_fit"]["fast_tau_s"])
+
+
+def hold_segments(d: Diagnosis, creep: Effect, fast_tau_s: float | None = None) -> list[dict]:
     """The held-out part's input holds of >= :data:`FIGURE_HOLD_MIN_S`, from
     :data:`~ipmc_model.effects.CREEP_HOLD_SKIP_S` into each: time since the hold began (s),
     and the change since then (mm) of the free-run residual before and after and of
     ``creep``'s state (what the creep predicts the residual before does). Holds found on the
     whole record, as the hold test finds them; those that began before the held-out part or
-    whose first sample past the skip lies within a model's warm-up are left out."""
+    whose first sample past the skip lies within a model's warm-up are left out.
+
+    With ``fast_tau_s`` (s) each also has the three signals as the hold test compares them
+    (``before_settled_mm``, ``after_settled_mm``, ``creep_settled_mm``): taken off a constant
+    and the fast settling ``exp(-t / fast_tau_s)`` by least squares over the hold."""
     dt, cut = d.model_before.dt_s, d.cut
     c = creep.creep_state(d.u_v, dt)
     res = []
@@ -1964,43 +1982,97 @@ def hold_segments(d: Diagnosis, creep: Effect) -> list[dict]:
         a0 = a + skip
         if a < cut or not all(np.isfinite(r[a0]) for r in res):
             continue
-        out.append({"t_s": (np.arange(a0, b) - a) * dt, "u_v": float(d.u_v[a]),
-                    "before_mm": res[0][a0:b] - res[0][a0],
-                    "after_mm": res[1][a0:b] - res[1][a0],
-                    "creep_mm": c[a0:b] - c[a0]})
+        t = (np.arange(a0, b) - a) * dt
+        seg = {"t_s": t, "u_v": float(d.u_v[a]),
+               "before_mm": res[0][a0:b] - res[0][a0],
+               "after_mm": res[1][a0:b] - res[1][a0],
+               "creep_mm": c[a0:b] - c[a0]}
+        if fast_tau_s is not None:
+            Q, _ = np.linalg.qr(np.column_stack([np.ones(t.size), np.exp(-t / fast_tau_s)]))
+            for name in ("before", "after", "creep"):
+                x = seg[f"{name}_mm"]
+                seg[f"{name}_settled_mm"] = x - Q @ (Q.T @ x)
+        out.append(seg)
+    return out
+
+
+#: Bins (quantiles of the creep's predicted drift) of the creep figure's lower row.
+FIGURE_DRIFT_BINS = 8
+
+
+def binned_drift(segs: list[dict], which: str, n_bins: int = FIGURE_DRIFT_BINS) -> dict:
+    """The residual ``which`` ("before" or "after") against the creep's predicted drift, both
+    with the fast settling and each hold's level taken off (``hold_segments`` with
+    ``fast_tau_s``), pooled over the holds: ``slope`` (least squares through 0, the hold test's
+    beta on these holds), and per bin of the predicted drift (quantiles) its mean ``x_mm``, the
+    residual's mean ``y_mm`` and ``y_err_mm`` (its standard deviation over the square root of
+    the number of holds in the bin: the samples of one hold are not independent)."""
+    x = np.concatenate([s["creep_settled_mm"] for s in segs])
+    y = np.concatenate([s[f"{which}_settled_mm"] for s in segs])
+    hold = np.concatenate([np.full(s["t_s"].size, i) for i, s in enumerate(segs)])
+    sxx = float(x @ x)
+    out = {"slope": float(x @ y) / sxx if sxx > 0 else float("nan"),
+           "x_mm": [], "y_mm": [], "y_err_mm": []}
+    edges = np.quantile(x, np.linspace(0.0, 1.0, n_bins + 1))
+    for b in range(n_bins):
+        m = np.digitize(x, edges[1:-1]) == b
+        if m.sum() < 2:
+            continue
+        out["x_mm"].append(float(x[m].mean()))
+        out["y_mm"].append(float(y[m].mean()))
+        out["y_err_mm"].append(float(y[m].std() / np.sqrt(np.unique(hold[m]).size)))
     return out
 
 
 def _creep_figure(d: Diagnosis, out: Path, plt) -> str | None:
     """``creep_holds.png``: the residual during the held-out input holds, before and after,
-    with what the creep predicts; None without a creep or such holds."""
+    with what the creep predicts (top), and what the hold test compares (bottom: the residual
+    against the predicted drift, the fast settling and each hold's level taken off); None
+    without a creep or such holds."""
     shown = shown_creep(d)
-    segs = hold_segments(d, shown[0]) if shown else []
+    fast = shown_fast_tau_s(d)
+    segs = hold_segments(d, shown[0], fast) if shown else []
     if not segs:
         return None
     creep, accepted = shown
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7.5))
+    axes[0, 1].sharey(axes[0, 0])
+    axes[1, 1].sharey(axes[1, 0])
     # one colour per hold voltage, whatever the number of holds
     top = max(abs(s["u_v"]) for s in segs) or 1.0
     norm = plt.Normalize(-top, top)
     cmap = plt.get_cmap("coolwarm")
     for s in segs:
         col = cmap(norm(s["u_v"]))
-        axes[0].plot(s["t_s"], s["before_mm"], color=col, lw=1.0)
-        axes[0].plot(s["t_s"], s["creep_mm"], color=col, lw=1.0, ls="--")
-        axes[1].plot(s["t_s"], s["after_mm"], color=col, lw=1.0)
+        axes[0, 0].plot(s["t_s"], s["before_mm"], color=col, lw=1.0)
+        axes[0, 0].plot(s["t_s"], s["creep_mm"], color=col, lw=1.0, ls="--")
+        axes[0, 1].plot(s["t_s"], s["after_mm"], color=col, lw=1.0)
     p = creep.params
-    axes[0].set_title(f"before: residual (solid) and the creep's prediction (dashed)\n"
-                      f"tau {p['tau_s']:.3g} s, gain {p['gain_mm_per_v']:.3g} mm/V",
-                      fontsize=9)
-    axes[1].set_title("after: residual, creep in the model" if accepted else
-                      "final model: residual (creep named in the data, not added)", fontsize=9)
-    axes[0].set_ylabel(f"change from {CREEP_HOLD_SKIP_S:g} s into the hold (mm)")
-    for ax in axes:
+    axes[0, 0].set_title(f"before: residual (solid) and the creep's prediction (dashed)\n"
+                         f"tau {p['tau_s']:.3g} s, gain {p['gain_mm_per_v']:.3g} mm/V",
+                         fontsize=9)
+    axes[0, 1].set_title("after: residual, creep in the model" if accepted else
+                         "final model: residual (creep named in the data, not added)",
+                         fontsize=9)
+    axes[0, 0].set_ylabel(f"change from {CREEP_HOLD_SKIP_S:g} s into the hold (mm)")
+    for ax in axes[0]:
         ax.axhline(0.0, color="grey", lw=0.6)
         ax.set_xlabel("time since the input hold began (s), held-out part")
+    for ax, which in zip(axes[1], ("before", "after"), strict=True):
+        b = binned_drift(segs, which)
+        lim = max(abs(v) for v in b["x_mm"])
+        ax.plot([-lim, lim], [-lim, lim], color="grey", lw=0.8, ls="--",
+                label="all of the predicted drift")
+        ax.errorbar(b["x_mm"], b["y_mm"], yerr=b["y_err_mm"], fmt="o", color="k", ms=4,
+                    capsize=2, label=f"residual, bin means (slope {b['slope']:.2f})")
+        ax.axhline(0.0, color="grey", lw=0.6)
+        ax.set_xlabel("the creep's predicted drift (mm)")
+        ax.set_title(f"what the hold test compares, {which}", fontsize=9)
+        ax.legend(loc="upper left", fontsize=8)
+    axes[1, 0].set_ylabel(f"residual (mm); both with the fast\nsettling (tau {fast:g} s) and "
+                          "the hold's level taken off")
     fig.tight_layout()
-    fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), ax=axes, pad=0.01,
+    fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), ax=axes[0], pad=0.01,
                  label=f"hold voltage (V), {len(segs)} holds")
     fig.savefig(out / "creep_holds.png", dpi=100)
     plt.close(fig)

@@ -140,16 +140,24 @@ def test_creep_found_with_undeclared_parameters(seed, creep, tmp_path, capsys):
     # the figure of the evidence: in the held-out input holds the residual before drifts the
     # way the creep predicts, and the creep in the model takes most of that drift out
     assert "creep_holds.png" in report and (tmp_path / "creep_holds.png").stat().st_size > 1000
-    from ipmc_model.diagnose import hold_segments, shown_creep
+    from ipmc_model.diagnose import binned_drift, hold_segments, shown_creep, shown_fast_tau_s
 
     shown, was_accepted = shown_creep(d)
     assert was_accepted and shown.params == pytest.approx(fitted)
-    segments = hold_segments(d, shown)
+    fast = shown_fast_tau_s(d)
+    assert fast == cf["fast_tau_s"]
+    segments = hold_segments(d, shown, fast)
     assert len(segments) >= 2
     for s in segments:
         before, predicted, after = s["before_mm"][-1], s["creep_mm"][-1], s["after_mm"][-1]
         assert np.sign(before) == np.sign(predicted) == -np.sign(s["u_v"])
         assert abs(after) < 0.5 * abs(before)
+    # the figure's lower row, what the hold test compares: with the fast settling taken off,
+    # the residual before follows the predicted drift and the residual after does not
+    drift = {w: binned_drift(segments, w) for w in ("before", "after")}
+    assert drift["before"]["slope"] > 0.5, drift
+    assert abs(drift["after"]["slope"]) < 0.5 * drift["before"]["slope"], drift
+    assert np.all(np.diff(drift["before"]["x_mm"]) > 0)
     # `ipmc evaluate` scores the model with its creep on a record, as it scores any model
     from ipmc_model.identify_cli import evaluate_main
 
