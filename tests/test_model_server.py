@@ -454,9 +454,10 @@ def test_an_augmented_feedforward_is_served_as_an_inverse_model(creep_feedforwar
 
 
 def test_serves_the_feedforward_of_an_augmented_model(creep_feedforward, processes,
-                                                      rclpy_context, spin):
+                                                      rclpy_context, spin, call):
     """model_server's /ipmc/feedforward is the in-process AugmentedInverse stepper's, the
-    creep's state advanced by the clamped voltages (history_voltage:=clamped)."""
+    creep's state advanced by the clamped voltages (history_voltage:=clamped), also after a
+    reload."""
     ff_model, ff_file, _ = creep_feedforward
     processes.start_node("model_server", "model_server", {
         "inverse_model_file": str(ff_file), "history_voltage": "clamped",
@@ -476,6 +477,13 @@ def test_serves_the_feedforward_of_an_augmented_model(creep_feedforward, process
         assert np.max(np.abs(np.array(expected) - plain)) > 0.01
         assert spin(node, lambda: probe.latest("model") is not None, 5.0)
         assert "effects undone around it: creep" in _value(probe.latest("model"), "inverse")
+        # a reload goes on from the history kept: the creep's state of all 8 s (256 samples,
+        # 2.56 s, were kept before; the served voltages then differed by up to 0.05 V)
+        assert probe.reload.wait_for_service(timeout_sec=5.0)
+        assert probe.call_reload(call).success
+        ff = probe.drive(spin, 1000, 30.0)
+        expected = _served(ff_model.stepper(), probe.refs, 2.0)
+        np.testing.assert_allclose([m.vector.x for m in ff], expected, rtol=0, atol=1e-9)
     finally:
         node.destroy_node()
     assert processes.stop("model_server") < GRACE_S

@@ -88,7 +88,14 @@ from scipy.signal import lfilter
 from ipmc_driver.validation import as_signal, same_length
 
 from .errors import ModelFileError
-from .narx import FreeRunCache, InverseNarxModel, NarxCommittee, NarxModel, members_of
+from .narx import (
+    HISTORY_TAUS,
+    FreeRunCache,
+    InverseNarxModel,
+    NarxCommittee,
+    NarxModel,
+    members_of,
+)
 from .persistence import load_model, read_model_document, save_model
 
 EFFECT_NAMES = ("creep", "drift", "delay", "rate_dependence", "asymmetry", "dead_zone",
@@ -627,8 +634,10 @@ class AugmentedInverseStepper:
         Time of the first step since the identification record's start (drift).
     y_history, u_history : array_like, optional
         Past desired displacements (mm) and applied voltages (V), oldest first, of equal
-        length: replayed through the steps, so the stepper goes on from them (a model server's
-        reload) instead of from rest. A creep state older than the history is not known.
+        length: the stepper goes on from them (a model server's reload) instead of from rest.
+        The effects' states are run through them, and the inverse is given them in the
+        baseline's space. A creep state older than the history is not known
+        (:attr:`AugmentedInverse.history_samples` says how much is enough).
     """
 
     def __init__(self, model: AugmentedModel, inverse: InverseNarxModel, t0_s: float = 0.0,
@@ -639,17 +648,31 @@ class AugmentedInverseStepper:
         self._m = model
         self._in = [e.runner(model.dt_s) for e in model._inputs()]
         self._out = [e.runner(model.dt_s) for e in model._outputs()]
-        self._inv = inverse.stepper()
         self._k = 0
         self._t0 = float(t0_s)
         self._pending: tuple[float, float] | None = None  # (u applied, v returned)
-        if y_history is not None or u_history is not None:
-            yh, uh = as_signal("y_history", y_history), as_signal("u_history", u_history)
-            same_length(y_history=yh, u_history=uh)
-            self._t0 -= yh.size * model.dt_s  # the history ends where t0_s starts
-            for y_k, u_k in zip(yh, uh, strict=True):
-                self.step(y_k)
-                self.record_applied(u_k)
+        if y_history is None and u_history is None:
+            self._inv = inverse.stepper()
+            return
+        yh, uh = as_signal("y_history", y_history), as_signal("u_history", u_history)
+        same_length(y_history=yh, u_history=uh)
+        self._t0 -= yh.size * model.dt_s  # the history ends where t0_s starts
+        # What step() and _commit() do to each sample, without the inverse's kernel rows: the
+        # inverse's own state comes from its history at once (a creep of minutes needs
+        # tens of thousands of samples).
+        z, v = np.empty(yh.size), np.empty(yh.size)
+        for k, (z_k, u_k) in enumerate(zip(yh, uh, strict=True)):
+            t_k = self._t0 + k * model.dt_s
+            for r in reversed(self._out):
+                z_k = r.backward(z_k, t_k)
+            v_k = u_k
+            for r in self._in:
+                v_k = r.apply(v_k)
+            for r in self._out:
+                r.push(u_k)
+            z[k], v[k] = z_k, v_k
+        self._k = yh.size
+        self._inv = inverse.stepper(z, v)
 
     def _commit(self) -> None:
         if self._pending is None:
@@ -718,6 +741,15 @@ class AugmentedInverse:
     @property
     def max_lag_(self) -> int:
         return self.inverse.max_lag_
+
+    @property
+    def history_samples(self) -> int:
+        """Past samples a stepper going on from a history needs (a model server keeps as
+        many): the inverse's, and :data:`~ipmc_model.narx.HISTORY_TAUS` of the longest time
+        constant among the effects it undoes (a creep's)."""
+        taus = [e.params["tau_s"] for e in self.feedforward_model.effects if "tau_s" in e.params]
+        slow = math.ceil(HISTORY_TAUS * max(taus, default=0.0) / self.dt_s)
+        return max(self.inverse.history_samples, slow)
 
     @property
     def effect_names(self) -> list[str]:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import math
 from collections import OrderedDict
 
 import numpy as np
@@ -779,6 +780,13 @@ class InverseNarxModel:
         check_fitted(self, "narx_")
         return self.narx_.regressor_
 
+    @property
+    def history_samples(self) -> int:
+        """Past samples a stepper going on from a history needs: the lags, and
+        :data:`HISTORY_TAUS` of the longest memory channel's time constant."""
+        slow = max(self.memory_taus_s, default=0.0)
+        return max(self.max_lag_, math.ceil(HISTORY_TAUS * slow / self.dt_s))
+
     def predict(self, y, u) -> np.ndarray:
         """One-step inverse: voltage (V) from displacement ``y`` and the measured past ``u``."""
         check_fitted(self, "narx_")
@@ -804,6 +812,10 @@ class InverseNarxModel:
             "dt_s": self.dt_s,
         }
 
+
+#: Time constants of history after which a state started from rest is within 0.7 % of one
+#: that lived through everything before (exp(-5)): what a stepper's history must span.
+HISTORY_TAUS = 5.0
 
 #: What a feedforward's voltage history holds after each step: the voltage that reached the
 #: actuator (PID included), the feedforward's own output limited to the actuator's range, or

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
@@ -309,6 +311,32 @@ def test_feedforward_stepper_goes_on_from_its_history(feedforward, record):
     assert abs(s3.step(ref[m]) - out[m]) > 1e-3
     with pytest.raises(ValueError, match="same length"):
         feedforward.stepper(ref[:5], applied[:4])
+
+
+def test_feedforward_history_spans_its_slowest_effect(feedforward, record):
+    """history_samples (what model_server keeps for a reload) spans five of the creep's time
+    constants: going on from that many past samples lands near the stepper that lived through
+    the whole record; from 256 (model_server's depth before) the creep state is short."""
+    u, y = record
+    n = y.size
+    s, out, applied = feedforward.stepper(), np.empty(n), np.empty(n)
+    for k in range(n):
+        out[k] = s.step(y[k])
+        applied[k] = np.clip(out[k], -1.5, 1.5)
+        s.record_applied(applied[k])
+    h = feedforward.history_samples
+    assert h == math.ceil(5 * 5.0 * RATE) > feedforward.inverse.history_samples
+    m = n - 200
+
+    def going_on_from(depth):
+        st, got = feedforward.stepper(y[m - depth:m], applied[m - depth:m]), []
+        for k in range(m, n):
+            got.append(st.step(y[k]))
+            st.record_applied(applied[k])
+        return np.max(np.abs(np.array(got) - out[m:]))
+
+    err = {depth: going_on_from(depth) for depth in (h, 256)}
+    assert err[h] < 0.02 * err[256], err
 
 
 def test_feedforward_free_run_and_one_step(feedforward, record):

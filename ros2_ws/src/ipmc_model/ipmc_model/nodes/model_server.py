@@ -77,6 +77,9 @@ AUTO_WINDOW = {"drift": 600, "both": 600, "whiteness": 300}
 PAIR_MEMORY = 256
 # Samples of history handed to new steppers after a reload (more than any sane lag depth).
 HISTORY_DEPTH = 256
+# An inverse model's feedforward keeps as many as its state needs (history_samples: a creep
+# undone around it, tau 20 s, needs 100 s), up to this many (10 min at 100 Hz).
+FF_HISTORY_MAX = 60_000
 # A free-run output beyond this (mm) is a diverged model, not a displacement.
 DIVERGED_MM = 1e3
 
@@ -387,6 +390,10 @@ class ModelServer(Node):
             return False, str(exc)
         self.forward, self.inverse = forward, inverse
         self.ff_source, self._inversion = source, inversion
+        depth = (min(max(HISTORY_DEPTH, inverse.history_samples), FF_HISTORY_MAX)
+                 if source == "inverse" else HISTORY_DEPTH)
+        if depth != self._ff_hist.maxlen:
+            self._ff_hist = deque(self._ff_hist, maxlen=depth)
         self._restart_steppers()
         self.monitor.reset()
         self._e_free.clear()
