@@ -219,6 +219,18 @@ def test_track_graph_with_forward_inversion_agrees_with_in_process(forward_file,
     assert "feedforward forward-model inversion" in log, log[-2000:]
 
 
+def test_track_graph_with_the_creep_undone_agrees_with_in_process(creep_feedforwards, ros_env,
+                                                                  tmp_path):
+    """An augmented model's feedforward (ipmc identify --inverse --effects-from) through the
+    graph: model_server serves it as the inverse model, with the creep undone, and the
+    lock-step hybrid loop is the in-process one."""
+    _, _, out = graph_and_in_process(creep_feedforwards["creep"], ros_env, tmp_path,
+                                     timeout_s=150)
+    bag = Path(out.stderr.split("bag ")[-1].split()[0])
+    log = (bag.parent / "logs" / "model_server.log").read_text()
+    assert "with the effects undone around it: creep" in log, log[-2000:]
+
+
 def _children(pid: int) -> set[int]:
     """PIDs of the live child processes of ``pid`` (from /proc)."""
     out = set()
