@@ -656,11 +656,12 @@ class AugmentedInverseStepper:
             return
         yh, uh = as_signal("y_history", y_history), as_signal("u_history", u_history)
         same_length(y_history=yh, u_history=uh)
-        self._t0 -= yh.size * model.dt_s  # the history ends where t0_s starts
+        n = yh.size
+        self._t0 -= n * model.dt_s  # the history ends where t0_s starts
         # What step() and _commit() do to each sample, without the inverse's kernel rows: the
         # inverse's own state comes from its history at once (a creep of minutes needs
         # tens of thousands of samples).
-        z, v = np.empty(yh.size), np.empty(yh.size)
+        z, v = np.empty(n), np.empty(n)
         for k, (z_k, u_k) in enumerate(zip(yh, uh, strict=True)):
             t_k = self._t0 + k * model.dt_s
             for r in reversed(self._out):
@@ -668,10 +669,13 @@ class AugmentedInverseStepper:
             v_k = u_k
             for r in self._in:
                 v_k = r.apply(v_k)
-            for r in self._out:
-                r.push(u_k)
             z[k], v[k] = z_k, v_k
-        self._k = yh.size
+            if k < n - 1:
+                for r in self._out:
+                    r.push(u_k)
+        # the last sample stays pending, as a live step's: record_applied may still correct it
+        self._k = n - 1
+        self._pending = (float(uh[-1]), float(v[-1]))
         self._inv = inverse.stepper(z, v)
 
     def _commit(self) -> None:
