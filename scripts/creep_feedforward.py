@@ -3,18 +3,18 @@ model (``ipmc identify --inverse --effects-from model_after.json``) against the 
 on the plant with its creep.
 
     .venv/bin/python scripts/creep_feedforward.py --seeds 4 5 6 7 [--seconds 300]
-        [--prototypes 800] [--history-voltage clamped applied] [--out DIR]
+        [--prototypes 800] [--amplitude 2.5] [--history-voltage clamped applied] [--out DIR]
 
-Per seed: a record of random 2.5 V steps held 0.5-5 s on the plant with its creep (the demo's
-rig data); ``model_after.json`` holds the plant's own creep (what the diagnosis finds,
-tests/test_creep_hold.py) around a small forward NARX; the demo's inverse recipe identified
-plain and with ``--effects-from``; then 60 s holds (-3 mm, and -4 mm at the 3 V limit) in
-process, inverse alone and hybrid, and a 30 s hybrid sine. Prints, per run, the whole-run
-RMSE, the RMSE after 2 s and the mean error over the last 10 s (mm), for each voltage the
-feedforward takes as applied (``--history-voltage``: its own limited to 3 V, as ``ipmc
-track``, or the plant's, PID included, as model_server's default on the rig; it drives the
-creep state). docs/diagnose.md, "Control: inverse of baseline + creep", has the tables
-(sessions 39 and 40).
+Per seed: a record of random steps up to 2.5 V (``--amplitude``) held 0.5-5 s on the plant
+with its creep (the demo's rig data); ``model_after.json`` holds the plant's own creep (what
+the diagnosis finds, tests/test_creep_hold.py) around a small forward NARX; the demo's
+inverse recipe identified plain and with ``--effects-from``; then 60 s holds (-3 mm, and
+-4 mm at the 3 V limit) in process, inverse alone and hybrid, and a 30 s hybrid sine. Prints,
+per run, the whole-run RMSE, the RMSE after 2 s and the mean error over the last 10 s (mm),
+for each voltage the feedforward takes as applied (``--history-voltage``: its own limited to
+3 V, as ``ipmc track``, or the plant's, PID included, as model_server's default on the rig;
+it drives the creep state). docs/diagnose.md, "Control: inverse of baseline + creep", has
+the tables (sessions 39 and 40).
 """
 
 from __future__ import annotations
@@ -29,7 +29,8 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 
-def feedforwards(seed: int, seconds: float, prototypes: int, out: Path) -> dict[str, Path]:
+def feedforwards(seed: int, seconds: float, prototypes: int, out: Path,
+                 amplitude_v: float = 2.5) -> dict[str, Path]:
     """The plain and the creep-undone feedforward files of one record."""
     from ipmc_control.demo import INVERSE  # the demo's inverse recipe (docs/control.md)
     from ipmc_driver.dataio import Record, save_csv
@@ -41,7 +42,7 @@ def feedforwards(seed: int, seconds: float, prototypes: int, out: Path) -> dict[
     from ipmc_model.narx import NarxModel
 
     out.mkdir(parents=True, exist_ok=True)
-    _, u = random_steps(seconds, 100.0, 2.5, seed=seed)
+    _, u = random_steps(seconds, 100.0, amplitude_v, seed=seed)
     run = IpmcPlant(effects=["creep"], seed=seed).run(u)
     save_csv(Record(run.t_s, run.u_v, run.y_mm), out / "rig.csv")
     base = NarxModel(FixedSizeLSSVMRegressor(C=1e3, sigma=3.0, n_prototypes=200, seed=0),
@@ -62,6 +63,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", type=int, nargs="+", default=[4, 5, 6, 7])
     p.add_argument("--seconds", type=float, default=300.0, help="record length (default 300)")
     p.add_argument("--prototypes", type=int, default=800, help="the inverse's (default 800)")
+    p.add_argument("--amplitude", type=float, default=2.5,
+                   help="largest step of the record, V (default 2.5, the demo's)")
     p.add_argument("--history-voltage", nargs="+", default=["clamped"],
                    choices=["clamped", "applied"],
                    help="the voltage the feedforward takes as applied (default clamped)")
@@ -78,7 +81,8 @@ def main(argv: list[str] | None = None) -> int:
           "over the last 10 s (mm)")
     with threadpool_limits(1):
         for seed in args.seeds:
-            files = feedforwards(seed, args.seconds, args.prototypes, root / f"seed{seed}")
+            files = feedforwards(seed, args.seconds, args.prototypes, root / f"seed{seed}",
+                                 args.amplitude)
             ff = {name: load_feedforward(str(f), "hybrid") for name, f in files.items()}
             for ref, mode, dur in runs:
                 cells = []
