@@ -173,6 +173,12 @@ def test_track_with_the_creep_undone_holds_closer(creep_feedforwards, tmp_path, 
                        "constant-reachable", "--mode", "hybrid", "--plant-effect", "creep",
                        "--seconds", "5", "--json", str(out)]) == 0
     assert set(json.loads(out.read_text())) == KEYS
+    assert "extrapolates" not in capsys.readouterr().err
+    # this record's steps stop at 2.5 V: its inverse never held -4 mm, and ipmc track says so
+    assert track_main(["--model", str(creep_feedforwards["creep"]), "--reference",
+                       "constant", "--mode", "inverse", "--seconds", "1"]) == 0
+    err = capsys.readouterr().err
+    assert "the hold at -4 mm lies beyond" in err and "extrapolates" in err, err
     assert track_main(["--model", str(creep_feedforwards["after"]), "--reference",
                        "constant", "--mode", "hybrid", "--seconds", "1"]) == 2
     assert "--effects-from" in capsys.readouterr().err

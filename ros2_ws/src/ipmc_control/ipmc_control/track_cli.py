@@ -81,6 +81,33 @@ def load_feedforward(path: str | None, mode: str):
                      "'ipmc identify --input-memory-taus 0.3 0.5 --no-raw-voltage'")
 
 
+#: Tolerance of :func:`reach_warning`, as a share of the span of the held displacements.
+REACH_TOLERANCE_SHARE = 0.02
+
+
+def reach_warning(model, reference: str) -> str | None:
+    """A sentence when a hold reference lies beyond the displacements the inverse was
+    identified on as held ones (``InverseNarxModel.settled_range_mm``); None within them, for
+    a moving reference, or for another feedforward. There the inverse extrapolates: a
+    feedforward with the creep undone identified on steps up to 2.5 V held -4 mm worse than
+    the plain one, and better on steps up to 3 V (docs/diagnose.md, session 40)."""
+    from ipmc_model.effects import AugmentedInverse
+    from ipmc_model.narx import InverseNarxModel
+
+    inverse = model.inverse if isinstance(model, AugmentedInverse) else model
+    if (REFERENCE_KIND[reference] != "constant" or not isinstance(inverse, InverseNarxModel)
+            or inverse.settled_range_mm is None):
+        return None
+    lo, hi = inverse.settled_range_mm
+    hold = REFERENCE_PARAMS[reference]["value_mm"]
+    tol = REACH_TOLERANCE_SHARE * (hi - lo)
+    if lo - tol <= hold <= hi + tol:
+        return None
+    return (f"the hold at {hold:g} mm lies beyond the displacements the inverse was identified "
+            f"on as held ones ({lo:.2f} to {hi:.2f} mm), where it extrapolates: identify it on "
+            "a record that holds there (steps up to the voltage the hold needs)")
+
+
 # The name before forward models could serve as feedforward.
 load_inverse = load_feedforward
 
@@ -273,6 +300,9 @@ def main(argv: list[str] | None = None) -> int:
     duration = args.seconds or DEFAULT_DURATION_S[args.reference]
     try:
         model = load_feedforward(args.model, args.mode)
+        reach = reach_warning(model, args.reference)
+        if reach:
+            print(f"ipmc track: warning: {reach}", file=sys.stderr)
         if args.graph:
             summary = run_graph(args.model, args.reference, args.mode, args.plant_effect,
                                 duration)

@@ -787,6 +787,21 @@ class InverseNarxModel:
         slow = max(self.memory_taus_s, default=0.0)
         return max(self.max_lag_, math.ceil(HISTORY_TAUS * slow / self.dt_s))
 
+    @property
+    def settled_range_mm(self) -> tuple[float, float] | None:
+        """The displacements (mm) the inverse was identified on as held ones: the range of its
+        slowest memory channel (the displacement low-passed) over its regressor rows, or of
+        the displacement itself without one; None for a regressor without stored rows. A
+        reference held beyond it asks the inverse to extrapolate."""
+        b = self.narx_
+        centers = getattr(self.regressor_, "centers_", None)
+        if centers is None:
+            return None
+        ch = len(b.in_delays_) - 1
+        start = sum(len(ds) for ds in b.in_delays_[:ch])
+        v = centers[:, start:start + len(b.in_delays_[ch])] * b.u_scale_[ch] + b.u_mean_[ch]
+        return float(v.min()), float(v.max())
+
     def predict(self, y, u) -> np.ndarray:
         """One-step inverse: voltage (V) from displacement ``y`` and the measured past ``u``."""
         check_fitted(self, "narx_")
