@@ -95,10 +95,11 @@ def reach_warning(model, reference: str) -> str | None:
     from ipmc_model.narx import InverseNarxModel
 
     inverse = model.inverse if isinstance(model, AugmentedInverse) else model
-    if (REFERENCE_KIND[reference] != "constant" or not isinstance(inverse, InverseNarxModel)
-            or inverse.settled_range_mm is None):
+    held = (inverse.settled_range_mm if isinstance(inverse, InverseNarxModel)
+            and REFERENCE_KIND[reference] == "constant" else None)
+    if held is None:
         return None
-    lo, hi = inverse.settled_range_mm
+    lo, hi = held
     hold = REFERENCE_PARAMS[reference]["value_mm"]
     tol = REACH_TOLERANCE_SHARE * (hi - lo)
     if lo - tol <= hold <= hi + tol:
