@@ -121,6 +121,7 @@ from .residuals import (
     ccf,
     correlation_test,
     find_holds,
+    hold_basis,
     hold_drift_test,
     ljung_box,
     noise_floor,
@@ -1988,7 +1989,7 @@ def hold_segments(d: Diagnosis, creep: Effect, fast_tau_s: float | None = None) 
                "after_mm": res[1][a0:b] - res[1][a0],
                "creep_mm": c[a0:b] - c[a0]}
         if fast_tau_s is not None:
-            Q, _ = np.linalg.qr(np.column_stack([np.ones(t.size), np.exp(-t / fast_tau_s)]))
+            Q = hold_basis(t, fast_tau_s)
             for name in ("before", "after", "creep"):
                 x = seg[f"{name}_mm"]
                 seg[f"{name}_settled_mm"] = x - Q @ (Q.T @ x)

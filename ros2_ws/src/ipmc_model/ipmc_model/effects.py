@@ -662,43 +662,49 @@ class AugmentedInverseStepper:
         # inverse's own state comes from its history at once (a creep of minutes needs
         # tens of thousands of samples).
         z, v = np.empty(n), np.empty(n)
-        for k, (z_k, u_k) in enumerate(zip(yh, uh, strict=True)):
-            t_k = self._t0 + k * model.dt_s
-            for r in reversed(self._out):
-                z_k = r.backward(z_k, t_k)
-            v_k = u_k
-            for r in self._in:
-                v_k = r.apply(v_k)
-            z[k], v[k] = z_k, v_k
+        for k, (y_k, u_k) in enumerate(zip(yh, uh, strict=True)):
+            z[k] = self._baseline_target(y_k, self._t0 + k * model.dt_s)
+            v[k] = self._baseline_input(u_k)
             if k < n - 1:
-                for r in self._out:
-                    r.push(u_k)
+                self._push(u_k)
         # the last sample stays pending, as a live step's: record_applied may still correct it
         self._k = n - 1
         self._pending = (float(uh[-1]), float(v[-1]))
         self._inv = inverse.stepper(z, v)
 
+    def _baseline_target(self, y_mm: float, t_k: float) -> float:
+        """The displacement the baseline must give (mm): the output effects removed, with
+        their state known before this sample's voltage."""
+        for r in reversed(self._out):
+            y_mm = r.backward(y_mm, t_k)
+        return y_mm
+
+    def _baseline_input(self, u_v: float) -> float:
+        """The baseline's input (V) for an applied voltage: the input effects' maps."""
+        for r in self._in:
+            u_v = r.apply(u_v)
+        return u_v
+
+    def _push(self, u_v: float) -> None:
+        """Advance the output effects' states by an applied voltage (V)."""
+        for r in self._out:
+            r.push(u_v)
+
     def _commit(self) -> None:
         if self._pending is None:
             return
         u, v_returned = self._pending
-        v = u
-        for r in self._in:
-            v = r.apply(v)
+        v = self._baseline_input(u)
         if v != v_returned:
             self._inv.record_applied(v)
-        for r in self._out:
-            r.push(u)
+        self._push(u)
         self._k += 1
         self._pending = None
 
     def step(self, y_desired_mm: float) -> float:
         """Desired displacement (mm) -> feedforward voltage (V)."""
         self._commit()
-        t_k = self._t0 + self._k * self._m.dt_s
-        z = float(y_desired_mm)
-        for r in reversed(self._out):
-            z = r.backward(z, t_k)
+        z = self._baseline_target(float(y_desired_mm), self._t0 + self._k * self._m.dt_s)
         v = self._inv.step(z)
         u = v
         for r in reversed(self._in):
@@ -1123,7 +1129,7 @@ def fit_creep_on_holds(r, u, dt_s: float, taus, *, nuisance_tau_s: float | None 
         out; NaN elsewhere), for out-of-sample evidence, and ``profile`` (rows tau_s, gain,
         sse at the best tau_f).
     """
-    from .residuals import find_holds
+    from .residuals import find_holds, hold_basis
 
     r = as_signal("r", r, allow_nan=True)
     u = as_signal("u", u)
@@ -1154,8 +1160,7 @@ def fit_creep_on_holds(r, u, dt_s: float, taus, *, nuisance_tau_s: float | None 
     for i, ((s, _), idx) in enumerate(zip(segs, idxs, strict=True)):
         X0 = np.column_stack([b[idx] for b in bases])
         for f, tf in enumerate(fast_taus_s):
-            Q, _ = np.linalg.qr(np.column_stack([np.ones(idx.size),
-                                                 np.exp(-(idx - s) * dt_s / tf)]))
+            Q = hold_basis((idx - s) * dt_s, tf)
             rr = r[idx] - Q @ (Q.T @ r[idx])
             X = X0 - Q @ (Q.T @ X0)
             srr[i, f] = rr @ rr

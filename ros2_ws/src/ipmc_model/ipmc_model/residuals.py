@@ -331,6 +331,16 @@ def find_holds(u, dt_s: float, min_s: float, tol_fraction: float = HOLD_TOL_FRAC
     return holds
 
 
+def hold_basis(t_s, fast_tau_s: float | None = None) -> np.ndarray:
+    """Orthonormal columns (n, 1 or 2) spanning a constant and, with ``fast_tau_s`` (s), the
+    fast settling ``exp(-t / fast_tau_s)`` over a hold's samples at ``t_s`` (s since the hold
+    began): what the hold test, the creep's hold fit and the creep figure take off each hold
+    (``x - Q @ (Q.T @ x)``)."""
+    t = np.asarray(t_s, dtype=float)
+    cols = [np.ones(t.size)] + ([] if fast_tau_s is None else [np.exp(-t / fast_tau_s)])
+    return np.linalg.qr(np.column_stack(cols))[0]
+
+
 def hold_drift_test(r, x, u, dt_s: float, *, skip_s: float = HOLD_SKIP_S,
                     min_use_s: float = 1.0, beta_min: float = HOLD_BETA_MIN,
                     alpha: float = 0.05, min_holds: int = 3,
@@ -395,10 +405,7 @@ def hold_drift_test(r, x, u, dt_s: float, *, skip_s: float = HOLD_SKIP_S,
         idx = idx[np.isfinite(r[idx]) & np.isfinite(x[idx])]
         if idx.size * dt_s < min_use_s:
             continue
-        cols = [np.ones(idx.size)]
-        if fast_tau_s is not None:
-            cols.append(np.exp(-(idx - s) * dt_s / fast_tau_s))
-        Q, _ = np.linalg.qr(np.column_stack(cols))
+        Q = hold_basis((idx - s) * dt_s, fast_tau_s)
         blocks.append((r[idx] - Q @ (Q.T @ r[idx]), x[idx] - Q @ (Q.T @ x[idx])))
         if n is not None:
             nblocks.append(n[idx] - Q @ (Q.T @ n[idx]))
