@@ -402,6 +402,36 @@ def test_a_committee_is_served_as_a_forward_model(tmp_path):
         choose_feedforward("forward-inversion", forward, None)
 
 
+def test_pair_history_keeps_the_newest_pairs_in_order():
+    from ipmc_model.nodes.model_server import PairHistory, history_depth
+
+    h = PairHistory(5)
+    assert len(h) == 0 and h.tail(3) == (None, None)
+    with pytest.raises(IndexError):
+        h.last()
+    for k in range(8):
+        h.append(k, 10.0 * k)
+    assert len(h) == 5
+    a, b = h.tail(3)
+    assert a.tolist() == [5, 6, 7] and b.tolist() == [50, 60, 70]
+    assert h.tail(99)[0].tolist() == [3, 4, 5, 6, 7]
+    h.set_last(7, -1.0)
+    assert h.last() == (7.0, -1.0) and h.tail(1)[1].tolist() == [-1.0]
+    a[:] = 0.0   # tail gives copies
+    assert h.tail(3)[0].tolist() == [5, 6, 7]
+    h.clear()
+    assert len(h) == 0 and h.tail(3) == (None, None)
+    h.append(1.0, 2.0)
+    assert h.tail(3)[0].tolist() == [1.0]
+
+    class Memory:
+        def __init__(self, n):
+            self.history_samples = n
+
+    assert [history_depth(Memory(n)) for n in (0, 300, 10**6)] == [256, 300, 60_000]
+    assert history_depth(object()) == 256
+
+
 @pytest.fixture(scope="module")
 def creep_feedforward(tmp_path_factory):
     """An augmented model's feedforward (what 'ipmc identify --inverse --effects-from' writes):
@@ -484,6 +514,46 @@ def test_serves_the_feedforward_of_an_augmented_model(creep_feedforward, process
         ff = probe.drive(spin, 1000, 30.0)
         expected = _served(ff_model.stepper(), probe.refs, 2.0)
         np.testing.assert_allclose([m.vector.x for m in ff], expected, rtol=0, atol=1e-9)
+    finally:
+        node.destroy_node()
+    assert processes.stop("model_server") < GRACE_S
+
+
+def test_a_reload_to_a_model_of_longer_memory_has_its_history(creep_feedforward, processes,
+                                                              rclpy_context, spin, call,
+                                                              tmp_path):
+    """A plain inverse (a 256-sample history is plenty for it) swapped on disk for the creep
+    feedforward (10 000 samples) and reloaded: the new stepper goes on from all the samples
+    served so far, not only the 256 the plain one needed."""
+    from ipmc_model.effects import save_augmented
+    from ipmc_model.persistence import save_model
+
+    ff_model, _, _ = creep_feedforward
+    served_file = save_model(ff_model.inverse, tmp_path / "inverse.json")
+    assert ff_model.inverse.history_samples < 256 < 800 < ff_model.history_samples
+    processes.start_node("model_server", "model_server", {
+        "inverse_model_file": str(served_file), "history_voltage": "clamped",
+        "u_max_v": 2.0, "diagnostics_period_s": 0.5})
+    probe = Probe(rclpy_context)
+    node = probe.node
+    try:
+        assert spin(node, lambda: probe.pub_ref.get_subscription_count() > 0
+                    and node.count_publishers("/ipmc/feedforward") > 0, 30.0), \
+            processes.log("model_server")
+        ff = probe.drive(spin, 800, 30.0)
+        before = _served(ff_model.inverse.stepper(), probe.refs, 2.0)
+        np.testing.assert_allclose([m.vector.x for m in ff], before, rtol=0, atol=1e-9)
+        save_augmented(ff_model, served_file)   # the same path, now the creep feedforward
+        assert probe.call_reload(call).success
+        n = len(probe.refs)
+        ff = probe.drive(spin, 1000, 30.0)
+        y_hist = np.array([r for _, r in probe.refs[:n]])
+        going_on = _served(ff_model.stepper(y_hist, np.array(before)), probe.refs[n:], 2.0)
+        np.testing.assert_allclose([m.vector.x for m in ff[n:]], going_on, rtol=0, atol=1e-9)
+        # what the last 256 samples alone would have given
+        short = _served(ff_model.stepper(y_hist[-256:], np.array(before[-256:])),
+                        probe.refs[n:], 2.0)
+        assert np.max(np.abs(np.array(going_on) - short)) > 1e-3
     finally:
         node.destroy_node()
     assert processes.stop("model_server") < GRACE_S

@@ -89,12 +89,12 @@ from ipmc_driver.validation import as_signal, same_length
 
 from .errors import ModelFileError
 from .narx import (
-    HISTORY_TAUS,
     FreeRunCache,
     InverseNarxModel,
     NarxCommittee,
     NarxModel,
     members_of,
+    samples_to_settle,
 )
 from .persistence import load_model, read_model_document, save_model
 
@@ -758,8 +758,7 @@ class AugmentedInverse:
         many): the inverse's, and :data:`~ipmc_model.narx.HISTORY_TAUS` of the longest time
         constant among the effects it undoes (a creep's)."""
         taus = [e.params["tau_s"] for e in self.feedforward_model.effects if "tau_s" in e.params]
-        slow = math.ceil(HISTORY_TAUS * max(taus, default=0.0) / self.dt_s)
-        return max(self.inverse.history_samples, slow)
+        return samples_to_settle(self.inverse.history_samples, taus, self.dt_s)
 
     @property
     def effect_names(self) -> list[str]:

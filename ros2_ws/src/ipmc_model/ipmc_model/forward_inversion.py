@@ -37,7 +37,7 @@ import numpy as np
 
 from .errors import check_fitted
 from .lssvm import _KernelExpansion
-from .narx import NarxModel, memory_poles, voltage_channels
+from .narx import NarxModel, memory_poles, samples_to_settle, voltage_channels
 
 __all__ = ["ForwardInversionFeedforward", "ForwardInversionStepper", "voltage_channels"]
 
@@ -191,6 +191,13 @@ class ForwardInversionFeedforward:
                 st._saved = (st._ub.copy(), st._yb.copy(), st._mem.copy(), st._u_prev)
                 st._advance(min(self.u_limit_v, max(-self.u_limit_v, float(u))))
         return st
+
+    @property
+    def history_samples(self) -> int:
+        """Past voltages a stepper going on from a history needs (see :meth:`stepper`): the
+        forward model's lags, and five of its slowest voltage channel's time constants."""
+        return samples_to_settle(self.forward_model.max_lag_, self.input_memory_taus_s,
+                                 self.dt_s)
 
     def get_params(self) -> dict:
         return {

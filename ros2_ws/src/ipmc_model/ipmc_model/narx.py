@@ -332,6 +332,13 @@ class NarxModel:
         check_fitted(self, "regressor_")
         return NarxStepper(self, u_history, y_history)
 
+    @property
+    def history_samples(self) -> int:
+        """Past samples a stepper going on from a history needs: the lags, and
+        :data:`HISTORY_TAUS` of the longest low-passed voltage channel's time constant."""
+        check_fitted(self, "regressor_")
+        return samples_to_settle(self.max_lag_, self.input_memory_taus_s, self.dt_s)
+
     def get_params(self) -> dict:
         return {
             "input_lags": self.input_lags if np.isscalar(self.input_lags)
@@ -458,6 +465,11 @@ class NarxCommittee:
         """Sample-by-sample free-run predictor; see :class:`CommitteeStepper`."""
         check_fitted(self, "regressor_")
         return CommitteeStepper(self, u_history, y_history)
+
+    @property
+    def history_samples(self) -> int:
+        """Past samples a stepper going on from a history needs: the longest member's."""
+        return max(m.history_samples for m in self.members)
 
     def get_params(self) -> dict:
         return {"members": [m.get_params() for m in self.members]}
@@ -784,8 +796,7 @@ class InverseNarxModel:
     def history_samples(self) -> int:
         """Past samples a stepper going on from a history needs: the lags, and
         :data:`HISTORY_TAUS` of the longest memory channel's time constant."""
-        slow = max(self.memory_taus_s, default=0.0)
-        return max(self.max_lag_, math.ceil(HISTORY_TAUS * slow / self.dt_s))
+        return samples_to_settle(self.max_lag_, self.memory_taus_s, self.dt_s)
 
     @property
     def settled_range_mm(self) -> tuple[float, float] | None:
@@ -831,6 +842,13 @@ class InverseNarxModel:
 #: Time constants of history after which a state started from rest is within 0.7 % of one
 #: that lived through everything before (exp(-5)): what a stepper's history must span.
 HISTORY_TAUS = 5.0
+
+
+def samples_to_settle(max_lag: int, memory_taus_s, dt_s: float) -> int:
+    """Past samples a stepper going on from a history needs: ``max_lag`` for its lags, and
+    :data:`HISTORY_TAUS` of the longest memory time constant (s) at the period ``dt_s`` (s)."""
+    slow = max((float(t) for t in memory_taus_s), default=0.0)
+    return max(int(max_lag), math.ceil(HISTORY_TAUS * slow / float(dt_s)))
 
 #: What a feedforward's voltage history holds after each step: the voltage that reached the
 #: actuator (PID included), the feedforward's own output limited to the actuator's range, or

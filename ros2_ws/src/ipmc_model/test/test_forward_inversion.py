@@ -171,6 +171,26 @@ def test_stepper_seeded_with_past_voltages_continues_the_run(linear_ff):
         linear_ff.stepper(u_history=[0.0, float("nan")])
 
 
+def test_history_samples_of_past_voltages_are_enough_to_go_on(linear_ff):
+    """history_samples: five of the slowest channel's time constants (what model_server hands
+    a new stepper); the last that many voltages continue the run within 0.01 V (0.005 V
+    measured), a tenth of them 2.7 V off."""
+    assert linear_ff.history_samples == 250   # 5 x 0.5 s at 100 Hz
+    target = linear_plant(smooth_voltage(900, seed=3, amplitude_v=1.5))
+    a = linear_ff.stepper()
+    u = []
+    for r in target[:800]:
+        u.append(a.step(r))
+        a.record_applied(u[-1])
+    ahead = [a.step(r) for r in target[800:]]
+
+    def off(n):
+        b = linear_ff.stepper(u_history=u[-n:])
+        return max(abs(b.step(r) - v) for r, v in zip(target[800:], ahead, strict=True))
+
+    assert off(linear_ff.history_samples) < 0.01 < 1.0 < off(linear_ff.history_samples // 10)
+
+
 @pytest.fixture(scope="module")
 def lssvm_nfir():
     """A forward LSSVM on the two low-passed voltages (the structure model_server inverts)."""

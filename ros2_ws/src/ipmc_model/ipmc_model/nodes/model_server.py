@@ -75,17 +75,66 @@ AUTO_TEST = {"free_run": "drift", "one_step": "whiteness"}
 AUTO_WINDOW = {"drift": 600, "both": 600, "whiteness": 300}
 # Unpaired predictions / measurements kept while waiting for their partner (stamps).
 PAIR_MEMORY = 256
-# Samples of history handed to new steppers after a reload (more than any sane lag depth).
+# Samples of history handed to new steppers after a reload: at least this many (more than any
+# sane lag depth), or as many as the model's state needs (its history_samples: a creep undone
+# around an inverse, tau 20 s, needs 100 s), up to HISTORY_MAX (10 min at 100 Hz). Both
+# histories always keep HISTORY_MAX, so a reload to a model of longer memory has its history.
 HISTORY_DEPTH = 256
-# An inverse model's feedforward keeps as many as its state needs (history_samples: a creep
-# undone around it, tau 20 s, needs 100 s), up to this many (10 min at 100 Hz).
-FF_HISTORY_MAX = 60_000
+HISTORY_MAX = 60_000
 # A free-run output beyond this (mm) is a diverged model, not a displacement.
 DIVERGED_MM = 1e3
 
 
 # What the model server serves as an inverse model (feedforward:=inverse).
 INVERSES = (InverseNarxModel, AugmentedInverse)
+
+
+class PairHistory:
+    """The last ``maxlen`` pairs of samples (two floats each), oldest first, in a ring buffer
+    (a deque of 60 000 tuples would hold about 6 MB)."""
+
+    def __init__(self, maxlen: int):
+        self.maxlen = int(maxlen)
+        self._buf = np.empty((self.maxlen, 2))
+        self._n = 0       # pairs written since the last clear
+
+    def __len__(self) -> int:
+        return min(self._n, self.maxlen)
+
+    def append(self, a: float, b: float) -> None:
+        self._buf[self._n % self.maxlen] = a, b
+        self._n += 1
+
+    def set_last(self, a: float, b: float) -> None:
+        """Replace the newest pair."""
+        if not self._n:
+            raise IndexError("the history is empty")
+        self._buf[(self._n - 1) % self.maxlen] = a, b
+
+    def last(self) -> tuple[float, float]:
+        if not self._n:
+            raise IndexError("the history is empty")
+        a, b = self._buf[(self._n - 1) % self.maxlen]
+        return float(a), float(b)
+
+    def clear(self) -> None:
+        self._n = 0
+
+    def tail(self, n: int) -> tuple:
+        """The newest ``n`` pairs (fewer if fewer were kept) as two arrays, oldest first;
+        (None, None) when empty: a stepper's history arguments."""
+        n = min(int(n), len(self))
+        if n <= 0:
+            return None, None
+        idx = np.arange(self._n - n, self._n) % self.maxlen
+        pairs = self._buf[idx]
+        return pairs[:, 0].copy(), pairs[:, 1].copy()
+
+
+def history_depth(model) -> int:
+    """Samples of history a new stepper of ``model`` is given: its ``history_samples``
+    within HISTORY_DEPTH .. HISTORY_MAX."""
+    return min(max(HISTORY_DEPTH, int(getattr(model, "history_samples", 0))), HISTORY_MAX)
 
 
 class ModelSetError(ValueError):
@@ -295,8 +344,8 @@ class ModelServer(Node):
         self._inversion: ForwardInversionFeedforward | None = None
         self._free = self._one = self._ff = None
         self._one_stamp: int | None = None    # stamp of the one-step stepper's last step
-        self._sample_hist: deque = deque(maxlen=HISTORY_DEPTH)   # (u applied V, y measured mm)
-        self._ff_hist: deque = deque(maxlen=HISTORY_DEPTH)       # (y desired mm, u V)
+        self._sample_hist = PairHistory(HISTORY_MAX)   # (u applied V, y measured mm)
+        self._ff_hist = PairHistory(HISTORY_MAX)       # (y desired mm, u V)
         self._pred: OrderedDict[int, tuple] = OrderedDict()     # stamp -> (u, y free, y one)
         self._meas: OrderedDict[int, float] = OrderedDict()     # stamp -> y measured mm
         self._u_applied_v: float | None = None
@@ -390,10 +439,6 @@ class ModelServer(Node):
             return False, str(exc)
         self.forward, self.inverse = forward, inverse
         self.ff_source, self._inversion = source, inversion
-        depth = (min(max(HISTORY_DEPTH, inverse.history_samples), FF_HISTORY_MAX)
-                 if source == "inverse" else HISTORY_DEPTH)
-        if depth != self._ff_hist.maxlen:
-            self._ff_hist = deque(self._ff_hist, maxlen=depth)
         self._restart_steppers()
         self.monitor.reset()
         self._e_free.clear()
@@ -414,24 +459,23 @@ class ModelServer(Node):
         self._one_stamp = None
         self._pred.clear()
         if self.forward is not None:
-            self._free = self.forward.stepper(*self._history(self._sample_hist))
-            self._one = self.forward.stepper(*self._history(self._sample_hist))
-        self._ff = self._new_feedforward(self._ff_hist)
+            self._free = self._new_forward()
+            self._one = self._new_forward()
+        self._ff = self._new_feedforward()
 
-    def _new_feedforward(self, history):
-        """A feedforward stepper of the chosen source, seeded with (y desired mm, u V) pairs."""
+    def _new_forward(self):
+        """A forward stepper going on from the recent (u applied V, y measured mm) pairs."""
+        return self.forward.stepper(*self._sample_hist.tail(history_depth(self.forward)))
+
+    def _new_feedforward(self):
+        """A feedforward stepper of the chosen source, going on from the recent
+        (y desired mm, u V) pairs."""
         if self.ff_source == "inverse":
-            return self.inverse.stepper(*self._history(history))
+            return self.inverse.stepper(*self._ff_hist.tail(history_depth(self.inverse)))
         if self.ff_source == "forward-inversion":
-            return self._inversion.stepper(self._history(history)[1])
+            return self._inversion.stepper(
+                self._ff_hist.tail(history_depth(self._inversion))[1])
         return None
-
-    @staticmethod
-    def _history(pairs) -> tuple:
-        if not pairs:
-            return None, None
-        a, b = np.array(pairs, dtype=float).T
-        return a, b
 
     def _on_reload(self, request, response):
         ok, msg = self.reload()
@@ -455,10 +499,10 @@ class ModelServer(Node):
         if not math.isfinite(y_mm):
             self.ff_skipped += 1
             return
-        if self.history_voltage == "applied" and self._u_applied_new and self._ff_hist:
+        if self.history_voltage == "applied" and self._u_applied_new and len(self._ff_hist):
             # The voltage that really reached the actuator replaces the last feedforward.
             self._ff.record_applied(self._u_applied_v)
-            self._ff_hist[-1] = (self._ff_hist[-1][0], self._u_applied_v)
+            self._ff_hist.set_last(self._ff_hist.last()[0], self._u_applied_v)
         self._u_applied_new = False
         u = self._ff.step(y_mm)
         if not math.isfinite(u):
@@ -466,14 +510,14 @@ class ModelServer(Node):
             self.get_logger().warn("inverse model diverged: restarted it from rest",
                                    throttle_duration_sec=1.0)
             self._ff_hist.clear()
-            self._ff = self._new_feedforward(self._ff_hist)
+            self._ff = self._new_feedforward()
             return
         u_ff = min(self.u_max_v, max(-self.u_max_v, u))
         if u_ff != u:
             self.ff_clamped += 1
         if self.history_voltage != "model":
             self._ff.record_applied(u_ff)
-        self._ff_hist.append((y_mm, u_ff if self.history_voltage != "model" else u))
+        self._ff_hist.append(y_mm, u_ff if self.history_voltage != "model" else u)
         out = Vector3Stamped()
         out.header = msg.header
         out.vector.x = u_ff
@@ -494,13 +538,13 @@ class ModelServer(Node):
             self.free_resets += 1
             self.get_logger().warn("free-run prediction diverged: restarted from the measured "
                                    "history", throttle_duration_sec=1.0)
-            self._free = self.forward.stepper(*self._history(self._sample_hist))
+            self._free = self._new_forward()
             y_free = self._free.step(u)
             if not abs(y_free) < DIVERGED_MM:
                 return
         y_one = self._one.step(u)
         if not abs(y_one) < DIVERGED_MM:
-            self._one = self.forward.stepper(*self._history(self._sample_hist))
+            self._one = self._new_forward()
             y_one = self._one.step(u)
         stamp = _stamp_ns(msg)
         self._one_stamp = stamp
@@ -542,7 +586,7 @@ class ModelServer(Node):
         self.pub_res.publish(out)
         self.residual_count += 1
         self._e_free.append(e_free)
-        self._sample_hist.append((u, y_meas))
+        self._sample_hist.append(u, y_meas)
         if stamp == self._one_stamp:
             # One-step-ahead: the next prediction starts from this measurement.
             self._one.correct_output(y_meas)
