@@ -206,6 +206,23 @@ def test_serves_feedforward_prediction_residual_and_reload(
         assert probe.latest("model").level == b"\x00"
         assert "forward.json" in _value(probe.latest("model"), "model_file")
         assert float(_value(probe.latest("feedforward"), "rate_hz")) >= 0.0
+        # the reference's -8 mm pulses leave the displacements the inverse was identified on:
+        # counted on /diagnostics and logged; its +-2 mm sine does not
+        from ipmc_model.narx import out_of_reach, reach_mm
+
+        reach = reach_mm(inverse)
+        beyond = [out_of_reach(r, reach) for _, r in probe.refs]
+        pulse = [r < -5.0 for _, r in probe.refs]
+        assert 0 < sum(beyond) <= sum(pulse) and not any(b and not p for b, p in
+                                                         zip(beyond, pulse, strict=True))
+        assert spin(node, lambda: int(_value(probe.latest("feedforward"), "count"))
+                    == len(probe.refs), 5.0)
+        assert int(_value(probe.latest("feedforward"), "beyond_range")) == sum(beyond)
+        lo, hi = (float(v) for v in _value(probe.latest("feedforward"),
+                                           "identified_range_mm").split())
+        assert (lo, hi) == pytest.approx(reach, abs=1e-3)
+        assert "beyond the displacements the inverse model was identified on" in \
+            processes.log("model_server")
         # the node's RMS covers every residual since the start (its window is longer than the
         # run), the free run from rest included: it is the RMS of what the probe received, not
         # of the settled part above (0.344 mm against a settled 0.214 mm once in make test; that

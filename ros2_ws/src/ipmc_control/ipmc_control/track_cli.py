@@ -81,32 +81,36 @@ def load_feedforward(path: str | None, mode: str):
                      "'ipmc identify --input-memory-taus 0.3 0.5 --no-raw-voltage'")
 
 
-#: Tolerance of :func:`reach_warning`, as a share of the span of the held displacements.
-REACH_TOLERANCE_SHARE = 0.02
+def reach_warning(model, reference: str, duration_s: float | None = None) -> str | None:
+    """A sentence when the reference leaves the displacements the inverse was identified on
+    (``ipmc_model.narx.reach_mm``): a hold beyond the held ones, a moving reference beyond
+    any of them over ``duration_s`` (default: the reference's run); None within them, or for
+    another feedforward. There the inverse extrapolates: a feedforward with the creep undone
+    identified on steps up to 2.5 V held -4 mm worse than the plain one, and better on steps
+    up to 3 V (docs/diagnose.md, session 40)."""
+    from ipmc_model.narx import out_of_reach, reach_mm
 
-
-def reach_warning(model, reference: str) -> str | None:
-    """A sentence when a hold reference lies beyond the displacements the inverse was
-    identified on as held ones (``InverseNarxModel.settled_range_mm``); None within them, for
-    a moving reference, or for another feedforward. There the inverse extrapolates: a
-    feedforward with the creep undone identified on steps up to 2.5 V held -4 mm worse than
-    the plain one, and better on steps up to 3 V (docs/diagnose.md, session 40)."""
-    from ipmc_model.effects import AugmentedInverse
-    from ipmc_model.narx import InverseNarxModel
-
-    inverse = model.inverse if isinstance(model, AugmentedInverse) else model
-    held = (inverse.settled_range_mm if isinstance(inverse, InverseNarxModel)
-            and REFERENCE_KIND[reference] == "constant" else None)
-    if held is None:
+    held = REFERENCE_KIND[reference] == "constant"
+    reach = reach_mm(model, held=held)
+    if reach is None:
         return None
-    lo, hi = held
-    hold = REFERENCE_PARAMS[reference]["value_mm"]
-    tol = REACH_TOLERANCE_SHARE * (hi - lo)
-    if lo - tol <= hold <= hi + tol:
+    lo, hi = reach
+    if held:
+        hold = REFERENCE_PARAMS[reference]["value_mm"]
+        if not out_of_reach(hold, reach):
+            return None
+        return (f"the hold at {hold:g} mm lies beyond the displacements the inverse was "
+                f"identified on as held ones ({lo:.2f} to {hi:.2f} mm), where it "
+                "extrapolates: identify it on a record that holds there (steps up to the "
+                "voltage the hold needs)")
+    _, r = paper_reference(reference).sample(duration_s or DEFAULT_DURATION_S[reference],
+                                             RATE_HZ)
+    beyond = [v for v in (float(r.min()), float(r.max())) if out_of_reach(v, reach)]
+    if not beyond:
         return None
-    return (f"the hold at {hold:g} mm lies beyond the displacements the inverse was identified "
-            f"on as held ones ({lo:.2f} to {hi:.2f} mm), where it extrapolates: identify it on "
-            "a record that holds there (steps up to the voltage the hold needs)")
+    return (f"the reference reaches {' and '.join(f'{v:.2f}' for v in beyond)} mm, beyond the "
+            f"displacements the inverse was identified on ({lo:.2f} to {hi:.2f} mm), where it "
+            "extrapolates: identify it on a record that covers the reference's range")
 
 
 # The name before forward models could serve as feedforward.
@@ -301,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
     duration = args.seconds or DEFAULT_DURATION_S[args.reference]
     try:
         model = load_feedforward(args.model, args.mode)
-        reach = reach_warning(model, args.reference)
+        reach = reach_warning(model, args.reference, duration)
         if reach:
             print(f"ipmc track: warning: {reach}", file=sys.stderr)
         if args.graph:

@@ -804,11 +804,20 @@ class InverseNarxModel:
         slowest memory channel (the displacement low-passed) over its regressor rows, or of
         the displacement itself without one; None for a regressor without stored rows. A
         reference held beyond it asks the inverse to extrapolate."""
+        return self._channel_range_mm(len(self.narx_.in_delays_) - 1)
+
+    @property
+    def identified_range_mm(self) -> tuple[float, float] | None:
+        """The displacements (mm) the inverse was identified on: the range of the displacement
+        channel over its regressor rows (transients included); None for a regressor without
+        stored rows. A reference beyond it asks the inverse to extrapolate."""
+        return self._channel_range_mm(0)
+
+    def _channel_range_mm(self, ch: int) -> tuple[float, float] | None:
         b = self.narx_
         centers = getattr(self.regressor_, "centers_", None)
         if centers is None:
             return None
-        ch = len(b.in_delays_) - 1
         start = sum(len(ds) for ds in b.in_delays_[:ch])
         v = centers[:, start:start + len(b.in_delays_[ch])] * b.u_scale_[ch] + b.u_mean_[ch]
         return float(v.min()), float(v.max())
@@ -842,6 +851,32 @@ class InverseNarxModel:
 #: Time constants of history after which a state started from rest is within 0.7 % of one
 #: that lived through everything before (exp(-5)): what a stepper's history must span.
 HISTORY_TAUS = 5.0
+
+
+#: How far beyond the displacements an inverse was identified on a reference may go before
+#: :func:`out_of_reach` says so: this share of their span.
+REACH_TOLERANCE_SHARE = 0.02
+
+
+def reach_mm(feedforward, held: bool = False) -> tuple[float, float] | None:
+    """The displacements (mm) an inverse feedforward was identified on: held ones for a hold
+    (``settled_range_mm``), any for a moving reference (``identified_range_mm``). An
+    augmented model's feedforward is judged by its inverse. None for a feedforward that does
+    not tell (a forward model's inversion, a regressor without stored rows)."""
+    inverse = getattr(feedforward, "inverse", feedforward)
+    if not isinstance(inverse, InverseNarxModel):
+        return None
+    return inverse.settled_range_mm if held else inverse.identified_range_mm
+
+
+def out_of_reach(r_mm: float, reach: tuple[float, float] | None) -> bool:
+    """Whether a reference ``r_mm`` (mm) lies beyond ``reach`` (:func:`reach_mm`) by more
+    than :data:`REACH_TOLERANCE_SHARE` of its span: there the inverse extrapolates."""
+    if reach is None:
+        return False
+    lo, hi = reach
+    tol = REACH_TOLERANCE_SHARE * (hi - lo)
+    return not lo - tol <= r_mm <= hi + tol
 
 
 def samples_to_settle(max_lag: int, memory_taus_s, dt_s: float) -> int:

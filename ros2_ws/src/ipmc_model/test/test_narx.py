@@ -277,6 +277,29 @@ def test_history_samples_are_enough_for_a_stepper_to_go_on(hyst_data):
     assert NarxCommittee(members).fit(u[:800], y[:800]).history_samples == 9
 
 
+def test_reach_is_the_displacements_the_inverse_was_identified_on(hyst_data):
+    from types import SimpleNamespace
+
+    from ipmc_model.narx import REACH_TOLERANCE_SHARE, out_of_reach, reach_mm
+
+    u, y = hyst_data
+    inv = InverseNarxModel(LSSVMRegressor(C=1e3, sigma=3.0), output_lags=3, input_lags=1,
+                           memory_taus_s=[2.0]).fit(u[:800], y[:800])
+    rows = y[inv.max_lag_:800]          # every row of a plain LS-SVM is a centre
+    assert inv.identified_range_mm == pytest.approx((rows.min(), rows.max()), abs=1e-9)
+    lo, hi = inv.settled_range_mm       # the displacement low-passed over 2 s: narrower
+    assert rows.min() < lo < hi < rows.max()
+    assert reach_mm(inv) == inv.identified_range_mm
+    assert reach_mm(inv, held=True) == inv.settled_range_mm
+    # an augmented model's feedforward by its inverse; a forward model does not tell
+    assert reach_mm(SimpleNamespace(inverse=inv), held=True) == (lo, hi)
+    assert reach_mm(NarxModel()) is None and not out_of_reach(99.0, None)
+    tol = REACH_TOLERANCE_SHARE * (hi - lo)
+    assert not out_of_reach(lo - 0.9 * tol, (lo, hi)) and not out_of_reach(hi + 0.9 * tol,
+                                                                           (lo, hi))
+    assert out_of_reach(lo - 1.1 * tol, (lo, hi)) and out_of_reach(hi + 1.1 * tol, (lo, hi))
+
+
 def test_voltage_channel_model_with_the_raw_voltage_and_output_lags(hyst_data):
     u, y = hyst_data
     m = NarxModel(LSSVMRegressor(C=1e3, sigma=3.0), input_lags=1, output_lags=2,

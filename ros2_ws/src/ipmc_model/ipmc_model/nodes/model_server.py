@@ -23,7 +23,8 @@ either may be empty, and what needs a missing model is simply not published.
 - ``~/reload`` (std_srvs/Trigger): reload the model file(s). All or nothing: a bad file keeps the
   models in use, and the response (success false) and the log say why.
 - ``/diagnostics`` (wall clock, every ``diagnostics_period_s``): model (loaded, kind, files),
-  feedforward (rate, clamping), residual: the staleness monitor
+  feedforward (rate, clamping, references beyond the displacements the inverse model was
+  identified on, where it extrapolates), residual: the staleness monitor
   (``ipmc_model.residuals.ResidualMonitor``). By default it is fed the free-run residual and runs
   the drift test: the first ``monitor_reference`` samples after a (re)load are the residual of
   the freshly fitted model; the status turns WARN "model stale: ..." (with the statistic and its
@@ -56,7 +57,14 @@ from ipmc_driver.node_runtime import run_node
 from ipmc_driver.qos import DIAGNOSTICS_QOS, PAIRED_SAMPLE_QOS, SAMPLE_QOS
 from ipmc_model.effects import AugmentedInverse, AugmentedModel, load_any_model
 from ipmc_model.forward_inversion import ForwardInversionFeedforward
-from ipmc_model.narx import HISTORY_VOLTAGES, InverseNarxModel, NarxCommittee, NarxModel
+from ipmc_model.narx import (
+    HISTORY_VOLTAGES,
+    InverseNarxModel,
+    NarxCommittee,
+    NarxModel,
+    out_of_reach,
+    reach_mm,
+)
 from ipmc_model.residuals import ResidualMonitor
 
 # A sample topic like the others (docs/interfaces.md: reliable, depth 100): at depth 10 a busy
@@ -355,6 +363,10 @@ class ModelServer(Node):
         self.reloads = self.failed_reloads = 0
         # Counters for /diagnostics.
         self.ff_count = self.ff_clamped = self.ff_skipped = 0
+        # References beyond the displacements the inverse was identified on (it extrapolates).
+        self.ff_reach: tuple[float, float] | None = None
+        self.ff_beyond = 0
+        self._ff_beyond_last = self._ff_beyond_period = 0
         self.pred_count = self.residual_count = self.free_resets = 0
         self._ff_count_last = 0
         self._diag_wall_last = time.monotonic()
@@ -439,6 +451,7 @@ class ModelServer(Node):
             return False, str(exc)
         self.forward, self.inverse = forward, inverse
         self.ff_source, self._inversion = source, inversion
+        self.ff_reach = reach_mm(inverse) if source == "inverse" else None
         self._restart_steppers()
         self.monitor.reset()
         self._e_free.clear()
@@ -504,6 +517,13 @@ class ModelServer(Node):
             self._ff.record_applied(self._u_applied_v)
             self._ff_hist.set_last(self._ff_hist.last()[0], self._u_applied_v)
         self._u_applied_new = False
+        if out_of_reach(y_mm, self.ff_reach):
+            self.ff_beyond += 1
+            lo, hi = self.ff_reach
+            self.get_logger().warn(
+                f"reference {y_mm:.2f} mm lies beyond the displacements the inverse model was "
+                f"identified on ({lo:.2f} to {hi:.2f} mm), where it extrapolates",
+                throttle_duration_sec=5.0)
         u = self._ff.step(y_mm)
         if not math.isfinite(u):
             self.ff_skipped += 1
@@ -604,6 +624,8 @@ class ModelServer(Node):
         if dt > 0:
             self.ff_rate_hz = (self.ff_count - self._ff_count_last) / dt
         self._diag_wall_last, self._ff_count_last = now, self.ff_count
+        self._ff_beyond_period = self.ff_beyond - self._ff_beyond_last
+        self._ff_beyond_last = self.ff_beyond
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status = [self._diag_model(), self._diag_feedforward(), self._diag_residual()]
@@ -638,15 +660,22 @@ class ModelServer(Node):
                                 "voltage channels to invert)", source="none",
                                 feedforward=self.feedforward)
         frac = self.ff_clamped / self.ff_count if self.ff_count else 0.0
-        level = DiagnosticStatus.WARN if frac > 0.5 else DiagnosticStatus.OK
+        level = (DiagnosticStatus.WARN if frac > 0.5 or self._ff_beyond_period
+                 else DiagnosticStatus.OK)
         name = FEEDFORWARD_NAMES[self.ff_source]
         msg = (f"{name}: {self.ff_rate_hz:.1f} Hz, {100 * frac:.0f} % clamped" if self.ff_count
                else f"{name}: waiting for /ipmc/reference")
+        if self._ff_beyond_period:
+            msg += (f", {self._ff_beyond_period} references beyond the identified range "
+                    "(the inverse extrapolates)")
+        reach = ("" if self.ff_reach is None
+                 else f"{self.ff_reach[0]:.3f} {self.ff_reach[1]:.3f}")
         return self._status("feedforward", level, msg, source=self.ff_source,
                             feedforward=self.feedforward, rate_hz=f"{self.ff_rate_hz:.2f}",
                             count=self.ff_count, clamped=self.ff_clamped,
                             skipped=self.ff_skipped, last_v=f"{self.ff_last_v:.4f}",
-                            u_max_v=self.u_max_v, history_voltage=self.history_voltage)
+                            u_max_v=self.u_max_v, history_voltage=self.history_voltage,
+                            identified_range_mm=reach, beyond_range=self.ff_beyond)
 
     def _diag_residual(self) -> DiagnosticStatus:
         if self._free is None:
