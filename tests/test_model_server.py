@@ -536,16 +536,15 @@ def test_serves_the_feedforward_of_an_augmented_model(creep_feedforward, process
     assert processes.stop("model_server") < GRACE_S
 
 
-def test_a_reload_to_a_model_of_longer_memory_has_its_history(creep_feedforward, processes,
-                                                              rclpy_context, spin, call,
-                                                              tmp_path):
-    """A plain inverse (a 256-sample history is plenty for it) swapped on disk for the creep
-    feedforward (10 000 samples) and reloaded: the new stepper goes on from all the samples
-    served so far, not only the 256 the plain one needed."""
-    from ipmc_model.effects import save_augmented
+def test_a_model_of_longer_memory_set_at_run_time_has_its_history(
+        creep_feedforward, processes, rclpy_context, spin, call, tmp_path):
+    """A plain inverse (a 256-sample history is plenty for it) swapped for the creep
+    feedforward (10 000 samples) at run time (ros2 param set inverse_model_file): the new
+    stepper goes on from all the samples served so far, not only the 256 the plain one needed.
+    A file that does not load is refused and the model in use kept."""
     from ipmc_model.persistence import save_model
 
-    ff_model, _, _ = creep_feedforward
+    ff_model, ff_file, _ = creep_feedforward
     served_file = save_model(ff_model.inverse, tmp_path / "inverse.json")
     assert ff_model.inverse.history_samples < 256 < 800 < ff_model.history_samples
     processes.start_node("model_server", "model_server", {
@@ -560,8 +559,14 @@ def test_a_reload_to_a_model_of_longer_memory_has_its_history(creep_feedforward,
         ff = probe.drive(spin, 800, 30.0)
         before = _served(ff_model.inverse.stepper(), probe.refs, 2.0)
         np.testing.assert_allclose([m.vector.x for m in ff], before, rtol=0, atol=1e-9)
-        save_augmented(ff_model, served_file)   # the same path, now the creep feedforward
-        assert probe.call_reload(call).success
+        bad = probe.set_parameter(call, "inverse_model_file", str(tmp_path / "missing.json"))
+        assert not bad.successful and "missing.json" in bad.reason, bad.reason
+        refused = probe.set_parameter(call, "feedforward", "forward-inversion")
+        assert not refused.successful and "needs a forward model" in refused.reason
+        assert probe.set_parameter(call, "inverse_model_file", str(ff_file)).successful
+        assert spin(node, lambda: probe.latest("model") is not None and "creep" in _value(
+            probe.latest("model"), "inverse"), 5.0)
+        assert _value(probe.latest("model"), "inverse_model_file") == str(ff_file)
         n = len(probe.refs)
         ff = probe.drive(spin, 1000, 30.0)
         y_hist = np.array([r for _, r in probe.refs[:n]])

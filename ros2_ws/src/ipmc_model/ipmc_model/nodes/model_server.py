@@ -21,7 +21,10 @@ either may be empty, and what needs a missing model is simply not published.
 - ``/ipmc/displacement`` (PointStamped, x in m) paired with the prediction of the same header
   stamp -> ``/ipmc/residual`` (PointStamped, measured - predicted, m).
 - ``~/reload`` (std_srvs/Trigger): reload the model file(s). All or nothing: a bad file keeps the
-  models in use, and the response (success false) and the log say why.
+  models in use, and the response (success false) and the log say why. Setting
+  ``model_file``, ``inverse_model_file`` or ``feedforward`` (``ros2 param set``) loads the new
+  set the same way; a set that does not load is refused with the loader's sentence. Either
+  way the new steppers go on from the samples kept, not from rest.
 - ``/diagnostics`` (wall clock, every ``diagnostics_period_s``): model (loaded, kind, files),
   feedforward (rate, clamping, references beyond the displacements the inverse model was
   identified on, where it extrapolates), residual: the staleness monitor
@@ -264,6 +267,9 @@ def _describe(model) -> str:
             f"{channels})")
 
 
+# The parameters that make the model set: setting any of them loads the set anew.
+MODEL_SET = frozenset({"model_file", "inverse_model_file", "feedforward"})
+
 # What /diagnostics calls each feedforward source.
 FEEDFORWARD_NAMES = {"inverse": "inverse model", "forward-inversion":
                      "forward-model inversion", "none": "none"}
@@ -273,11 +279,13 @@ class ModelServer(Node):
     def __init__(self) -> None:
         super().__init__("model_server")
         d = ParameterDescriptor
+        # The model set (model_file, inverse_model_file, feedforward) may be set at run time:
+        # the new set is loaded all or nothing, and a set that does not load is refused.
         self.declare_parameter("model_file", "", d(
             description="model file (JSON) from 'ipmc identify --out': forward -> predictions "
-                        "and residual; inverse -> feedforward; '' = none", read_only=True))
+                        "and residual; inverse -> feedforward; '' = none"))
         self.declare_parameter("inverse_model_file", "", d(
-            description="inverse model file for the feedforward ('' = none)", read_only=True))
+            description="inverse model file for the feedforward ('' = none)"))
         self.declare_parameter("u_max_v", U_LIMIT_V, d(
             description=f"feedforward limit |u| <= u_max_v, V (0 < u_max_v <= {U_LIMIT_V})"))
         self.declare_parameter("history_voltage", "applied", d(
@@ -286,7 +294,7 @@ class ModelServer(Node):
         self.declare_parameter("feedforward", "auto", d(
             description="feedforward source: auto (the inverse model if given, else the "
                         "forward model inverted if it has voltage channels) | inverse | "
-                        "forward-inversion (about 0.1 ms per sample)", read_only=True))
+                        "forward-inversion (about 0.1 ms per sample)"))
         # The staleness monitor (all read-only: it is built once; a reload restarts it).
         self.declare_parameter("monitor_residual", "free_run", d(
             description="residual fed to the staleness monitor: free_run (measured - free-run "
@@ -360,6 +368,7 @@ class ModelServer(Node):
         self._u_applied_new = False
         self.loaded_at: str = "never"
         self.load_error = ""
+        self._pending = None   # a model set loaded by _validate_parameters, to be installed
         self.reloads = self.failed_reloads = 0
         # Counters for /diagnostics.
         self.ff_count = self.ff_clamped = self.ff_skipped = 0
@@ -430,25 +439,55 @@ class ModelServer(Node):
         problem = self._check(**new)
         if problem:
             return SetParametersResult(successful=False, reason=problem)
+        self._pending = None
+        if MODEL_SET.intersection(new):
+            names = {k: new.get(k, self.get_parameter(k).value) for k in MODEL_SET}
+            try:
+                self._pending = (names, self._load(**names))
+            except ValueError as exc:
+                self.get_logger().error(f"parameters refused: {exc}")
+                return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
 
     def _apply_parameters(self, params) -> None:
         self.u_max_v = float(self.get_parameter("u_max_v").value)
         self.history_voltage = self.get_parameter("history_voltage").value
+        if self._pending is not None:
+            names, loaded = self._pending
+            self._pending = None
+            self.model_file, self.inverse_model_file = (names["model_file"],
+                                                        names["inverse_model_file"])
+            self.feedforward = names["feedforward"]
+            self._install(*loaded)
 
     # -- models ---------------------------------------------------------------------------------
-    def reload(self) -> tuple[bool, str]:
-        """(Re)load the model file(s); all or nothing. Returns (success, message)."""
-        if not self.model_file and not self.inverse_model_file:
-            return False, "no model file given (parameters model_file, inverse_model_file)"
+    @staticmethod
+    def _load(model_file: str, inverse_model_file: str, feedforward: str) -> tuple:
+        """(forward, inverse, feedforward source, forward inversion) of a model set; ValueError
+        with one sentence when it cannot be served."""
+        if not model_file and not inverse_model_file:
+            raise ValueError("no model file given (parameters model_file, inverse_model_file)")
         try:
-            forward, inverse = load_model_set(self.model_file, self.inverse_model_file)
-            source = choose_feedforward(self.feedforward, forward, inverse)
+            forward, inverse = load_model_set(model_file, inverse_model_file)
+            source = choose_feedforward(feedforward, forward, inverse)
             inversion = (ForwardInversionFeedforward(forward, u_limit_v=U_LIMIT_V)
                          if source == "forward-inversion" else None)
-        except (ValueError, OSError) as exc:  # ModelFileError and ModelSetError are ValueErrors
-            self.load_error = str(exc)
+        except OSError as exc:
+            raise ValueError(str(exc)) from None
+        return forward, inverse, source, inversion
+
+    def reload(self) -> tuple[bool, str]:
+        """(Re)load the model file(s); all or nothing. Returns (success, message)."""
+        try:
+            loaded = self._load(self.model_file, self.inverse_model_file, self.feedforward)
+        except ValueError as exc:  # ModelFileError and ModelSetError are ValueErrors
+            if self.model_file or self.inverse_model_file:
+                self.load_error = str(exc)
             return False, str(exc)
+        return True, self._install(*loaded)
+
+    def _install(self, forward, inverse, source: str, inversion) -> str:
+        """Serve a loaded model set; new steppers go on from the histories kept."""
         self.forward, self.inverse = forward, inverse
         self.ff_source, self._inversion = source, inversion
         self.ff_reach = reach_mm(inverse) if source == "inverse" else None
@@ -461,7 +500,7 @@ class ModelServer(Node):
         msg = (f"forward {_describe(forward)}, inverse {_describe(inverse)}, feedforward "
                f"{FEEDFORWARD_NAMES[source]}")
         self.get_logger().info(f"loaded {self._files()}: {msg}")
-        return True, msg
+        return msg
 
     def _files(self) -> str:
         return " + ".join(f for f in (self.model_file, self.inverse_model_file) if f)
