@@ -885,6 +885,7 @@ def samples_to_settle(max_lag: int, memory_taus_s, dt_s: float) -> int:
     slow = max((float(t) for t in memory_taus_s), default=0.0)
     return max(int(max_lag), math.ceil(HISTORY_TAUS * slow / float(dt_s)))
 
+
 #: What a feedforward's voltage history holds after each step: the voltage that reached the
 #: actuator (PID included), the feedforward's own output limited to the actuator's range, or
 #: its own output as returned (model_server's ``history_voltage``, ``run_tracking``'s).
