@@ -500,21 +500,30 @@ def test_an_augmented_feedforward_is_served_as_an_inverse_model(creep_feedforwar
         load_model_set(str(inverse_file), str(ff_file))
 
 
+def _serve_inverse(inverse_file, processes, rclpy_context, spin) -> Probe:
+    """model_server serving ``inverse_file`` (clamped history, u_max_v 2 V) and a probe matched
+    to its reference and feedforward topics."""
+    processes.start_node("model_server", "model_server", {
+        "inverse_model_file": str(inverse_file), "history_voltage": "clamped",
+        "u_max_v": 2.0, "diagnostics_period_s": 0.5})
+    probe = Probe(rclpy_context)
+    node = probe.node
+    if not spin(node, lambda: probe.pub_ref.get_subscription_count() > 0
+                and node.count_publishers("/ipmc/feedforward") > 0, 30.0):
+        node.destroy_node()
+        raise AssertionError(processes.log("model_server"))
+    return probe
+
+
 def test_serves_the_feedforward_of_an_augmented_model(creep_feedforward, processes,
                                                       rclpy_context, spin, call):
     """model_server's /ipmc/feedforward is the in-process AugmentedInverse stepper's, the
     creep's state advanced by the clamped voltages (history_voltage:=clamped), also after a
     reload."""
     ff_model, ff_file, _ = creep_feedforward
-    processes.start_node("model_server", "model_server", {
-        "inverse_model_file": str(ff_file), "history_voltage": "clamped",
-        "u_max_v": 2.0, "diagnostics_period_s": 0.5})
-    probe = Probe(rclpy_context)
+    probe = _serve_inverse(ff_file, processes, rclpy_context, spin)
     node = probe.node
     try:
-        assert spin(node, lambda: probe.pub_ref.get_subscription_count() > 0
-                    and node.count_publishers("/ipmc/feedforward") > 0, 30.0), \
-            processes.log("model_server")
         ff = probe.drive(spin, 800, 30.0)
         expected = _served(ff_model.stepper(), probe.refs, 2.0)
         np.testing.assert_allclose([m.vector.x for m in ff], expected, rtol=0, atol=1e-9)
@@ -547,15 +556,9 @@ def test_a_model_of_longer_memory_set_at_run_time_has_its_history(
     ff_model, ff_file, _ = creep_feedforward
     served_file = save_model(ff_model.inverse, tmp_path / "inverse.json")
     assert ff_model.inverse.history_samples < 256 < 800 < ff_model.history_samples
-    processes.start_node("model_server", "model_server", {
-        "inverse_model_file": str(served_file), "history_voltage": "clamped",
-        "u_max_v": 2.0, "diagnostics_period_s": 0.5})
-    probe = Probe(rclpy_context)
+    probe = _serve_inverse(served_file, processes, rclpy_context, spin)
     node = probe.node
     try:
-        assert spin(node, lambda: probe.pub_ref.get_subscription_count() > 0
-                    and node.count_publishers("/ipmc/feedforward") > 0, 30.0), \
-            processes.log("model_server")
         ff = probe.drive(spin, 800, 30.0)
         before = _served(ff_model.inverse.stepper(), probe.refs, 2.0)
         np.testing.assert_allclose([m.vector.x for m in ff], before, rtol=0, atol=1e-9)

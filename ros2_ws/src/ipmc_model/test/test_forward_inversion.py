@@ -155,13 +155,18 @@ def test_a_model_with_its_own_voltage_channels_needs_no_repeated_taus(linear_ff)
         ForwardInversionFeedforward(own, include_voltage=True)
 
 
+def _run_applied(ff, target_mm):
+    """A stepper run over ``target_mm`` with each voltage recorded as applied; (stepper, V)."""
+    st, u = ff.stepper(), []
+    for r in target_mm:
+        u.append(st.step(r))
+        st.record_applied(u[-1])
+    return st, u
+
+
 def test_stepper_seeded_with_past_voltages_continues_the_run(linear_ff):
     target = linear_plant(smooth_voltage(400, seed=3, amplitude_v=1.5))
-    a = linear_ff.stepper()
-    u = []
-    for r in target[:200]:
-        u.append(a.step(r))
-        a.record_applied(u[-1])
+    a, u = _run_applied(linear_ff, target[:200])
     b = linear_ff.stepper(u_history=u[:-1] + [0.0])
     b.record_applied(u[-1])  # replaces the last voltage of the history
     assert b.predicted_mm == pytest.approx(a.predicted_mm, abs=1e-12)
@@ -177,11 +182,7 @@ def test_history_samples_of_past_voltages_are_enough_to_go_on(linear_ff):
     measured), a tenth of them 2.7 V off."""
     assert linear_ff.history_samples == 250   # 5 x 0.5 s at 100 Hz
     target = linear_plant(smooth_voltage(900, seed=3, amplitude_v=1.5))
-    a = linear_ff.stepper()
-    u = []
-    for r in target[:800]:
-        u.append(a.step(r))
-        a.record_applied(u[-1])
+    a, u = _run_applied(linear_ff, target[:800])
     ahead = [a.step(r) for r in target[800:]]
 
     def off(n):
