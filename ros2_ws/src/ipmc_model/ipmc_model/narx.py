@@ -863,6 +863,7 @@ def reach_mm(feedforward, held: bool = False) -> tuple[float, float] | None:
     (``settled_range_mm``), any for a moving reference (``identified_range_mm``). An
     augmented model's feedforward is judged by its inverse. None for a feedforward that does
     not tell (a forward model's inversion, a regressor without stored rows)."""
+    # by attribute: effects.AugmentedInverse imports this module
     inverse = getattr(feedforward, "inverse", feedforward)
     if not isinstance(inverse, InverseNarxModel):
         return None

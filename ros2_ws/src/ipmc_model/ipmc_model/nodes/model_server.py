@@ -143,9 +143,9 @@ class PairHistory:
 
 
 def history_depth(model) -> int:
-    """Samples of history a new stepper of ``model`` is given: its ``history_samples``
-    within HISTORY_DEPTH .. HISTORY_MAX."""
-    return min(max(HISTORY_DEPTH, int(getattr(model, "history_samples", 0))), HISTORY_MAX)
+    """Samples of history a new stepper of ``model`` (any model served: forward, inverse,
+    forward inversion) is given: its ``history_samples`` within HISTORY_DEPTH .. HISTORY_MAX."""
+    return min(max(HISTORY_DEPTH, int(model.history_samples)), HISTORY_MAX)
 
 
 class ModelSetError(ValueError):
