@@ -1780,7 +1780,10 @@ def _markdown(d: Diagnosis, s: dict, figs: list[str], label: str) -> str:
              f"Decision rule: an effect is accepted when the held-out free-run residual is "
              f"significantly (95 %, Bartlett bound) and positively correlated with the effect's "
              f"signature AND the held-out free-run RMSE falls by at least "
-             f"{100 * d.threshold:.0f} %; creep also needs the residual to keep drifting "
+             f"{100 * d.threshold:.0f} % (more where refitting the model on other rows alone "
+             f"moves it: twice that spread; a creep shown on the input holds "
+             f"{100 * CREEP_GAIN_SHARE * d.threshold:.0f} %: each candidate's evidence says "
+             f"what it needed); creep also needs the residual to keep drifting "
              f"during input holds as the fitted creep predicts; effects are added one at a time "
              f"(greedy).", "",
              "## Before and after", "",

@@ -137,6 +137,11 @@ def test_creep_found_with_undeclared_parameters(seed, creep, tmp_path, capsys):
     report = (tmp_path / "report.md").read_text()
     assert (f"| creep | tau_s | {fitted['tau_s']:.4g} | {lo:.4g} to {hi:.4g} | s | "
             "time constant of the slow relaxation under a held voltage |") in report
+    # the decision rule the report states is the one that accepted this creep: on the holds
+    # it needed less than the other candidates' 10 % (the sentence said 10 % to session 41)
+    need = accepted.evidence["threshold"]
+    assert need < d.threshold and accepted.evidence["improvement"] >= need
+    assert f"a creep shown on the input holds {100 * need:.0f} %" in report
     # the figure of the evidence: in the held-out input holds the residual before drifts the
     # way the creep predicts, and the creep in the model takes most of that drift out
     assert "creep_holds.png" in report and (tmp_path / "creep_holds.png").stat().st_size > 1000
