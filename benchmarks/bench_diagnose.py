@@ -14,6 +14,7 @@ benchmark identifies is a committee (``--committee``, session 32).
     .venv/bin/python benchmarks/bench_diagnose.py pairs [SEED...]
     .venv/bin/python benchmarks/bench_diagnose.py creepmodel [SEED...]
     .venv/bin/python benchmarks/bench_diagnose.py baseline [SEED...]
+    .venv/bin/python benchmarks/bench_diagnose.py blind [SEED...]
 
 ``effects``: every case of :data:`CASES` through the CLI, without ``--model`` (seeds 0, 1, 2
 by default; they were used to design it).
@@ -27,6 +28,10 @@ used to design the rules for two changes in sessions 28-29).
 
 ``pairs``: as ``effects``, with two effects at once in the plant (:data:`PAIR_CASES`; seeds
 0-3 by default; seeds 0 and 1 were used to design the creep + drift pair in session 30).
+
+``blind``: ``stale`` and ``effects`` with effect sizes (:data:`BLIND_CHANGES`,
+:data:`BLIND_CASES`) and seeds (60 and above) that no rule was designed on: the held-out check
+of the rules themselves (session 42). Keep those seeds out of design.
 
 ``creepmodel``: a creep around a given model (:data:`CREEP_MODEL_CASES`; seeds 0-3 by
 default, used to design the frozen creep in session 34): day 1's baseline given with --model
@@ -269,6 +274,28 @@ COMBO_CHANGES = (
 )
 
 
+#: ``blind``: effect sizes no rule was designed on, for seeds no rule was designed on (60 and
+#: above: keep them so). Around a clean day's model (``stale``) ...
+BLIND_CHANGES = (
+    ("none", {}),
+    ("dead zone 0.38 V", {"dead_zone": {"width_v": 0.38}}),
+    ("saturation 2.7 mm", {"saturation": {"limit_mm": 2.7}}),
+    ("asymmetry 0.75", {"asymmetry": {"negative_gain_ratio": 0.75}}),
+    ("rate 0.12 mm/(V/s)", {"rate_dependence": {"gain_mm_per_v_per_s": 0.12}}),
+    ("drift 0.08 /min, 0.25 mm/min", {"drift": {"gain_loss_per_min": 0.08,
+                                                "offset_mm_per_min": 0.25}}),
+)
+#: ... and without a model, on records with input holds (``effects``)
+BLIND_CASES = (
+    ("holds: none", {}, 120.0, True),
+    ("holds: creep tau 15 s, -0.35 mm/V", {"creep": {"tau_s": 15.0, "gain_mm_per_v": -0.35}},
+     120.0, True),
+    ("holds: delay 0.15 s", {"delay": {"delay_s": 0.15}}, 120.0, True),
+    ("holds: drift 0.08 /min, 0.25 mm/min", {"drift": {"gain_loss_per_min": 0.08,
+                                                       "offset_mm_per_min": 0.25}}, 120.0, True),
+)
+
+
 def stale(tmp, seeds=(0, 1), amplitude=3.0, only=None, changes=STALE_CHANGES, extra=()):
     """A model from a clean day, given with --model, on a later day's record with a change
     (``only``: labels starting with one of these prefixes; "none" always runs)."""
@@ -438,6 +465,10 @@ if __name__ == "__main__":
             args = sys.argv[2:]
             stale(tmp, tuple(int(a) for a in args if a.isdigit()) or (0, 1),
                   only=tuple(a for a in args if not a.isdigit()) or None, extra=extra)
+        if what == "blind":
+            seeds = tuple(int(a) for a in sys.argv[2:]) or (60, 61)
+            stale(tmp, seeds, changes=BLIND_CHANGES, extra=extra)
+            effects(tmp, seeds, cases=BLIND_CASES, extra=extra)
         if what == "combos":
             args = sys.argv[2:]
             stale(tmp, tuple(int(a) for a in args if a.isdigit()) or (0, 1, 2, 3),
