@@ -906,6 +906,20 @@ DRIFT = {"drift": {"gain_loss_per_min": 0.1, "offset_mm_per_min": 0.3}}
 CREEP_12S = {"creep": {"tau_s": 12.0, "gain_mm_per_v": -0.6}}
 
 
+def test_an_asymmetry_is_tested_only_around_a_given_model():
+    """`bench_diagnose.py blind 66` (session 42; full tuning): without a model an asymmetry
+    0.5 was accepted beside the plant's creep (0.2006 -> 0.1579 mm), and 0.8 on the clean
+    record of that seed. A baseline fitted on the record represents the record's asymmetry;
+    refitted through a scaled negative voltage it had found the plant's on none of 6 records.
+    Around a model from a clean day it is found (test_given_model_from_a_clean_day_...)."""
+    creep = {"tau_s": 15.0, "gain_mm_per_v": -0.35}
+    d = diagnose(*_plant({"creep": creep}, seed=66, seconds=120.0, holds=True))
+    assert d.effects_found == ["creep"]
+    asym = [c for c in d.candidates if c.effect == "asymmetry"]
+    assert asym and all(not c.accepted and "params" not in c.evidence for c in asym)
+    assert asym[0].evidence["text"].startswith("not tested without a given model")
+
+
 @pytest.mark.parametrize("seed", [5, 13])
 def test_a_creep_beside_a_drift_is_found_on_the_holds(seed):
     _, u = random_steps(120.0, RATE, 1.5, seed=seed)
