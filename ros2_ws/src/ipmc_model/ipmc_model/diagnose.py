@@ -555,6 +555,27 @@ def model_input_kind(model) -> dict | None:
     return k if k["bandwidth_hz"] > 0 and 0 <= k["hold_share"] <= 1 else None
 
 
+#: Metadata key of a model file written by a diagnosis: the model's held-out free-run RMSE
+#: (mm) on the record it names (``data``).
+HELD_OUT_KEY = "held_out_free_run_rmse_mm"
+
+
+def given_model_error(model: AugmentedModel | None) -> tuple[float, str] | None:
+    """The held-out free-run RMSE (mm) a diagnosis measured for ``model`` on the record it
+    was identified on, and that record's name (a model file's metadata, :data:`HELD_OUT_KEY`),
+    or None (no model, or a file from ``ipmc identify`` or before session 42). A block around
+    a model that erred much on its own day may stand in for that error (blind seed 63: 0.40
+    mm, and an asymmetry 0.96 on a clean later day)."""
+    meta = getattr(model, "metadata_", None)
+    if not isinstance(meta, dict):
+        return None
+    try:
+        err = float(meta[HELD_OUT_KEY])
+    except (KeyError, TypeError, ValueError):
+        return None
+    return (err, str(meta.get("data", "unnamed"))) if np.isfinite(err) and err > 0 else None
+
+
 #: Tolerance of :func:`model_coverage`, as a share of the span of the voltages a given model
 #: was identified on: its regressor rows are a sample of the fit rows, whose extremes may
 #: fall between two of them.
@@ -1172,6 +1193,12 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
     rmse_before = ana_before["rmse_free_mm"]
     say(f"baseline: held-out free-run RMSE {rmse_before:.4f} mm, one-step "
         f"{ana_before['rmse_one_mm']:.4f} mm")
+    own = given_model_error(model)
+    if own is not None:
+        model_notes.append(f"the given model erred {own[0]:.4f} mm (held-out free-run RMSE) "
+                           f"on its own record, {own[1]}; here {rmse_before:.4f} mm before "
+                           "any block")
+        say(model_notes[-1])
 
     current, ana_cur, rmse_cur = before, ana_before, rmse_before
     floor_mm = noise_floor(y)
@@ -1754,12 +1781,15 @@ def write_report(d: Diagnosis, out_dir, data_label: str = "data") -> dict:
         k = model_input_kind(m)
         return {"input_kind": k} if k is not None else {}
 
-    meta_before = {**meta, **kind(d.model_before)}
+    # a later diagnosis around this model reports it beside the error it finds
+    meta_before = {**meta, **kind(d.model_before),
+                   HELD_OUT_KEY: _finite(d.rmse_before_mm)}
     p_before = save_model(d.model_before.baseline, out / "model_before.json",
                           metadata=meta_before) if not d.model_before.effects else \
         save_augmented(d.model_before, out / "model_before.json", metadata=meta_before)
     p_after = save_augmented(d.model_after, out / "model_after.json",
                              metadata={**meta, **kind(d.model_after),
+                                       HELD_OUT_KEY: _finite(d.rmse_after_mm),
                                        "effects_found": d.effects_found})
     summary = {
         "effects_found": list(d.effects_found),

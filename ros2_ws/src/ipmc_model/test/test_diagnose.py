@@ -1119,11 +1119,17 @@ def test_cli_writes_the_contract(tmp_path):
         assert (out / f).stat().st_size > 1000
     assert not (out / "creep_holds.png").exists()  # no creep, found or named, on this record
     # the saved baseline can be given back as --model
+    meta = json.loads(Path(summary["model_before"]).read_text())["metadata"]
+    assert meta["held_out_free_run_rmse_mm"] == summary["rmse_before_mm"]
     out2 = tmp_path / "again"
     assert main(["--data", str(csv), "--model", summary["model_before"], "--report",
                  str(out2)]) == 0
-    assert json.loads((out2 / "summary.json").read_text())["rmse_before_mm"] == \
-        pytest.approx(summary["rmse_before_mm"], rel=1e-9)
+    again = json.loads((out2 / "summary.json").read_text())["rmse_before_mm"]
+    assert again == pytest.approx(summary["rmse_before_mm"], rel=1e-9)
+    # beside the error it finds, the report gives the one the model had on its own record
+    assert (f"Note: the given model erred {summary['rmse_before_mm']:.4f} mm (held-out "
+            f"free-run RMSE) on its own record, {meta['data']}; here {again:.4f} mm before "
+            "any block.") in (out2 / "report.md").read_text()
 
 
 
