@@ -1800,18 +1800,27 @@ def write_report(d: Diagnosis, out_dir, data_label: str = "data") -> dict:
         "model_before": str(p_before),
         "model_after": str(p_after),
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_jsonable) + "\n")
+    # strict JSON (jq and JSON.parse refuse Infinity, which a candidate that could not be
+    # fitted wrote as its RMSE until session 42): every non-finite number is null
+    (out / "summary.json").write_text(json.dumps(_json_safe(summary), indent=2,
+                                                 allow_nan=False) + "\n")
     figs = _figures(d, out)
     (out / "report.md").write_text(_markdown(d, summary, figs, data_label))
     return summary
 
 
-def _jsonable(o):
+def _json_safe(o):
+    """``o`` with NumPy scalars and arrays as Python ones and non-finite floats as None, in
+    every dict, list and tuple."""
+    if isinstance(o, dict):
+        return {k: _json_safe(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple, np.ndarray)):
+        return [_json_safe(v) for v in o]
     if isinstance(o, np.generic):
-        return o.item()
+        o = o.item()
     if isinstance(o, float) and not np.isfinite(o):
         return None
-    raise TypeError(type(o).__name__)
+    return o
 
 
 def _markdown(d: Diagnosis, s: dict, figs: list[str], label: str) -> str:

@@ -1107,8 +1107,14 @@ def test_cli_writes_the_contract(tmp_path):
     csv = save_csv(Record(t, u, y), tmp_path / "clean.csv")
     out = tmp_path / "report"
     assert main(["--data", str(csv), "--report", str(out), "--seed", "0"]) == 0
-    summary = json.loads((out / "summary.json").read_text())
+
+    def strict(constant):  # what jq and JSON.parse refuse
+        raise AssertionError(f"summary.json is not strict JSON: {constant}")
+
+    summary = json.loads((out / "summary.json").read_text(), parse_constant=strict)
     assert set(summary) == KEYS
+    # a candidate not fitted or not tested has no RMSE: null (it was Infinity)
+    assert any(c["rmse_mm"] is None for c in summary["candidates"])
     assert isinstance(summary["effects_found"], list)
     assert summary["rmse_before_mm"] > 0 and summary["rmse_after_mm"] > 0
     for c in summary["candidates"]:
