@@ -164,7 +164,7 @@ SPLIT_HALF_EFFECTS = ("delay", "dead_zone", "asymmetry", "saturation", "rate_dep
 #: negative voltages it found the plant's asymmetry on none of 6 records, and a wrong one on 3
 #: (the bench's dead-zone seed 4; blind seed 66, clean and with a creep, session 42), where
 #: the scaling only reshaped the kernel's metric. Against a model from a clean day it is the
-#: change it is (24 of 24, blind 8 of 8).
+#: change it is (24 of 24; blind seeds 60-77: 16 of 16).
 GIVEN_MODEL_EFFECTS = ("asymmetry",)
 
 
