@@ -1468,9 +1468,9 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
             ev["control_rmse_mm"] = test["control_rmse_mm"]
             ev["improvement_over_control"] = test["over_control"]
         if "trend" in test:
-            ev["drift_trend"] = _nan_to_none(test["trend"])
+            ev["drift_trend"] = _json_safe(test["trend"])
         if hold is not None:
-            ev["hold_drift"] = _nan_to_none({k: v for k, v in hold.items() if k != "text"})
+            ev["hold_drift"] = _json_safe({k: v for k, v in hold.items() if k != "text"})
             fit = getattr(eff, "hold_fit_", None) or {}
             # the hold test, not the held-out gain: the creep is in the data, added or
             # not, if large enough for the sensor to resolve what it changes and slower
@@ -1758,11 +1758,6 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
 
 
 # -- report ------------------------------------------------------------------------------------
-def _nan_to_none(d: dict) -> dict:
-    """``d`` with its non-finite float values as None (evidence for summary.json)."""
-    return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in d.items()}
-
-
 def _finite(x):
     return float(x) if np.isfinite(x) else None
 
