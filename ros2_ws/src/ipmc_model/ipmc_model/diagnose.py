@@ -1270,15 +1270,6 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
         baseline even where the record's holds allow the block around it."""
         tc = time.perf_counter()
         where = f"round {rnd}" + (f", beside {beside}" if beside else "")
-        if model is None and name in GIVEN_MODEL_EFFECTS:
-            why = (f"not tested without a given model: a baseline fitted on the record "
-                   f"represents any {name.replace('_', ' ')} in it; give a model from a "
-                   "clean day with --model")
-            evaluated.append(Candidate(name, float("inf"), False,
-                                       {"round": rnd, **({"beside": beside} if beside else {}),
-                                        "text": why}))
-            say(f"{where}: {name}: {why}")
-            return None
         frozen = model is not None and name in FROZEN_EFFECTS
         try:
             with np.errstate(all="ignore"):
@@ -1635,6 +1626,14 @@ def diagnose(t_s, u_v, y_mm, *, model: AugmentedModel | None = None, seed: int =
     found: list[str] = []
     evaluated: list[Candidate] = []
     remaining = [c for c in candidates if c not in before.effect_names]
+    if model is None:  # one row each, in place of a fit in every round
+        for name in [c for c in remaining if c in GIVEN_MODEL_EFFECTS]:
+            why = (f"not tested without a given model: a baseline fitted on the record "
+                   f"represents any {name.replace('_', ' ')} in it; give a model from a "
+                   "clean day with --model")
+            evaluated.append(Candidate(name, float("inf"), False, {"round": 1, "text": why}))
+            say(f"{name}: {why}")
+            remaining.remove(name)
     for rnd in range(1, max_effects + 1):
         if not remaining or len(found) >= max_effects:
             break
