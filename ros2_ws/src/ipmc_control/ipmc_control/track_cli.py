@@ -65,10 +65,12 @@ def load_feedforward(path: str | None, mode: str):
         raise ValueError(why)
     from ipmc_model.effects import AugmentedInverse, AugmentedModel, load_any_model
     from ipmc_model.forward_inversion import ForwardInversionFeedforward
+    from ipmc_model.hysteresis import GpiInverse
     from ipmc_model.narx import InverseNarxModel, NarxModel
 
     model = load_any_model(path, 1.0 / RATE_HZ)
-    if isinstance(model, (InverseNarxModel, AugmentedInverse)):
+    if isinstance(model, (InverseNarxModel, AugmentedInverse, GpiInverse)):
+        check_gpi_rate(model, path)
         return model
     if isinstance(model, NarxModel) and model.uses_voltage_channels:
         return ForwardInversionFeedforward(model)
@@ -79,6 +81,15 @@ def load_feedforward(path: str | None, mode: str):
     raise ValueError(f"{path} holds a {type(model).__name__}, not an inverse model nor a forward "
                      "model with voltage channels; make one with 'ipmc identify --inverse' or "
                      "'ipmc identify --input-memory-taus 0.3 0.5 --no-raw-voltage'")
+
+
+def check_gpi_rate(model, path) -> None:
+    """A GPI feedforward runs at the rate it was identified at: its relaxations and charging
+    are discretised with that period."""
+    dt = getattr(getattr(model, "model", None), "dt_s", None)
+    if dt is not None and abs(dt * RATE_HZ - 1.0) > 1e-6:
+        raise ValueError(f"{path} was identified at {1 / dt:g} Hz; the loop runs at "
+                         f"{RATE_HZ:g} Hz")
 
 
 def reach_warning(model, reference: str, duration_s: float | None = None) -> str | None:

@@ -24,10 +24,12 @@ from .effects import (
     load_augmented,
     save_augmented,
 )
+from .hysteresis import GeneralizedPI, GpiInverse
 from .metrics import score
 from .narx import PAPER_C, PAPER_SIGMA, InverseNarxModel, NarxModel
 from .persistence import save_model
 from .play import PrandtlIshlinskii
+from .selection import FAMILIES, compare_families, record_limits
 from .tuning import (
     DEFAULT_CYCLES,
     DEFAULT_LAG_STEPS,
@@ -125,10 +127,16 @@ def evaluate_model(model, u, y) -> dict:
         ``{"free_run": {...}, "one_step": {...}, "units": "mm" | "V", "samples_skipped": int}``
         plus ``"free_run_output"`` and ``"one_step_output"`` arrays (drop them before JSON).
     """
-    if isinstance(model, PrandtlIshlinskii):
+    if isinstance(model, (PrandtlIshlinskii, GeneralizedPI)):
         y_free = model.simulate(u)
         y_one = y_free  # no output feedback: one-step equals free run
         skip, target, units = 0, y, "mm"
+    elif isinstance(model, GpiInverse):
+        # the numerical inverse from rest (free run), or from the state the measured
+        # voltages leave (one-step)
+        skip, target, units = 0, u, "V"
+        y_free = model.simulate(y)
+        y_one = model.predict(y, u)
     elif isinstance(model, (InverseNarxModel, AugmentedInverse)):
         # an AugmentedInverse (ipmc identify --inverse --effects-from) runs as the feedforward
         # does: its effects' states from rest, fed by the voltages it gives (free run) or by
@@ -174,13 +182,22 @@ def _print_metrics(result: dict, label: str) -> None:
 def _identify_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="ipmc identify",
-        description="Identify an IPMC model (PI or LSSVM-NARX, forward or inverse) from a record.",
+        description="Identify an actuator model from a record. With no --model it tries the "
+                    "families (" + ", ".join(FAMILIES) + ") fitted on the first 70 %% of the "
+                    "record, picks the lowest held-out free-run RMSE on the rest, refits it on "
+                    "the whole record and stores the table in the model file.",
     )
     p.add_argument("--data", required=True, help="t,u,y CSV file (s, V, mm) or rosbag2 folder")
-    p.add_argument("--model", required=True, choices=("pi", "lssvm-narx"))
+    p.add_argument("--model", choices=("gpi", "pi", "lssvm-narx"), default=None,
+                   help="force one family: gpi (rate-dependent generalised PI), pi (the "
+                        "paper's PI), lssvm-narx (the paper's LSSVM-NARX, ABC-tuned). Default: "
+                        "the best of " + ", ".join(FAMILIES) + " on held-out free run; with "
+                        "--inverse, gpi (served through its numerical inverse)")
     p.add_argument("--out", required=True, help="model file to write (.json, + .npz beside it)")
     p.add_argument("--inverse", action="store_true",
-                   help="lssvm-narx: identify the inverse model u = h(y, past u) (Eq. 19)")
+                   help="a feedforward: gpi (default) writes the model served through its "
+                        "numerical inverse; lssvm-narx identifies the inverse model "
+                        "u = h(y, past u) (Eq. 19)")
     p.add_argument("--effects-from", metavar="MODEL",
                    help="lssvm-narx --inverse: the feedforward of an augmented model (ipmc "
                         "diagnose's model_after.json). The inverse is fitted on this record as "
@@ -260,46 +277,11 @@ def identify_main(argv: list[str] | None = None) -> int:
         if args.effects_from and (args.model != "lssvm-narx" or not args.inverse):
             raise ValueError("--effects-from makes a feedforward: it needs --model lssvm-narx "
                              "--inverse")
-        if args.model == "pi":
-            if args.inverse:
-                raise ValueError("--inverse is for lssvm-narx; a PI model is inverted "
-                                 "analytically (PrandtlIshlinskii.inverse())")
-            if args.input_memory_taus is not None or not args.raw_voltage:
-                raise ValueError("--input-memory-taus and --no-raw-voltage are for lssvm-narx")
-            print(f"fitting a PI model ({args.operators} play operators, {args.pi_method})",
+        model = _identify(args, rec, u, y, meta)
+        meta["record_limits"] = record_limits(u, float(rec.rate_hz))
+        for why in meta["record_limits"]:
+            print(f"note: this record cannot show how a model generalises: {why}",
                   file=sys.stderr)
-            model = PrandtlIshlinskii(n_operators=args.operators, method=args.pi_method,
-                                      seed=args.seed).fit(u, y)
-        elif args.input_memory_taus is not None or not args.raw_voltage:
-            model = _identify_channel_model(args, u, y, 1.0 / float(rec.rate_hz), meta)
-        else:
-            tune = args.tune == "abc"
-            if args.memory_taus and not args.inverse:
-                raise ValueError("--memory-taus is for an inverse model: add --inverse")
-            fit_u, fit_y, augmented = u, y, None
-            if args.effects_from:
-                augmented, fit_u, fit_y = _feedforward_space(args, u, y, rec.dt_s, meta)
-            if args.input_lags is None:
-                args.input_lags = DEFAULT_INVERSE_INPUT_LAGS if args.inverse else DEFAULT_LAGS
-            if args.output_lags is None:
-                args.output_lags = DEFAULT_LAGS
-            if args.lag_step is None:
-                args.lag_step = "auto" if tune else 1
-            if tune:
-                print(f"tuning C, sigma by ABC ({args.budget[0]} sources x {args.budget[1]} "
-                      f"cycles, {args.objective} objective)", file=sys.stderr, flush=True)
-            model, tuning = identify_lssvm_narx(
-                fit_u, fit_y,
-                C=None if tune else args.C, sigma=None if tune else args.sigma,
-                input_lags=args.input_lags, output_lags=args.output_lags,
-                lag_step=args.lag_step, inverse=args.inverse, seed=args.seed,
-                memory_taus_s=args.memory_taus, dt_s=1.0 / float(rec.rate_hz),
-                n_prototypes=args.prototypes, max_exact=args.max_exact,
-                max_train_rows=args.max_rows, **_tuning_kwargs(args, tune),
-            )
-            _report_tuning(args, tuning, meta)
-            if augmented is not None:
-                model = AugmentedInverse(augmented, model)
         result = evaluate_model(model, u, y)
         meta["training_metrics"] = {k: result[k] for k in ("free_run", "one_step", "units",
                                                            "samples_skipped")}
@@ -313,6 +295,84 @@ def identify_main(argv: list[str] | None = None) -> int:
         print(f"ipmc identify: error: {exc}", file=sys.stderr)
         return 1
     return 0
+
+
+def _identify(args, rec, u, y, meta: dict):
+    """The model of the command line's family (or of the comparison, without --model)."""
+    dt_s = 1.0 / float(rec.rate_hz)
+    if args.model is None and args.inverse:
+        args.model = "gpi"
+    if args.model is None:
+        print(f"comparing {', '.join(FAMILIES)} on held-out free run (fit on the first 70 %)",
+              file=sys.stderr, flush=True)
+        sel = compare_families(u, y, dt_s, progress=_stage)
+        print(sel.table())
+        meta["selection"] = sel.as_dict()
+        args.model = sel.chosen
+        print(f"refitting {sel.chosen} on the whole record", file=sys.stderr, flush=True)
+    if args.model == "gpi":
+        _check_gpi_args(args)
+        print("fitting a GPI model (rate-dependent generalised Prandtl-Ishlinskii)",
+              file=sys.stderr, flush=True)
+        model = FAMILIES["gpi"].fit(u, y, dt_s, _stage)
+        print(f"GPI: charging tau {model.charge_tau_s_:.3g} s, ion-current limit "
+              f"{model.slew_v_per_s_:.3g} V/s, ridge alpha {model.cv_.alpha:.3g} "
+              f"({model.cv_.n_folds}-fold blocked free-run CV: {min(model.cv_.rmse):.4f} mm)")
+        return model.inverse() if args.inverse else model
+    if args.model == "pi":
+        if args.inverse:
+            raise ValueError("--inverse is for gpi or lssvm-narx; a PI model is inverted "
+                             "analytically (PrandtlIshlinskii.inverse())")
+        if args.input_memory_taus is not None or not args.raw_voltage:
+            raise ValueError("--input-memory-taus and --no-raw-voltage are for lssvm-narx")
+        print(f"fitting a PI model ({args.operators} play operators, {args.pi_method})",
+              file=sys.stderr)
+        return PrandtlIshlinskii(n_operators=args.operators, method=args.pi_method,
+                                 seed=args.seed).fit(u, y)
+    if args.input_memory_taus is not None or not args.raw_voltage:
+        return _identify_channel_model(args, u, y, dt_s, meta)
+    return _identify_narx(args, rec, u, y, meta)
+
+
+def _stage(text: str) -> None:
+    print(f"  {text}", file=sys.stderr, flush=True)
+
+
+def _check_gpi_args(args) -> None:
+    """Options of other families are refused for gpi, not ignored."""
+    if args.input_memory_taus is not None or not args.raw_voltage or args.memory_taus:
+        raise ValueError("--input-memory-taus, --no-raw-voltage and --memory-taus are for "
+                         "lssvm-narx; the GPI model has its relaxation bank built in")
+
+
+def _identify_narx(args, rec, u, y, meta: dict):
+    """The paper's LSSVM-NARX, forward or inverse, tuned by ABC or with --C/--sigma."""
+    tune = args.tune == "abc"
+    if args.memory_taus and not args.inverse:
+        raise ValueError("--memory-taus is for an inverse model: add --inverse")
+    fit_u, fit_y, augmented = u, y, None
+    if args.effects_from:
+        augmented, fit_u, fit_y = _feedforward_space(args, u, y, rec.dt_s, meta)
+    if args.input_lags is None:
+        args.input_lags = DEFAULT_INVERSE_INPUT_LAGS if args.inverse else DEFAULT_LAGS
+    if args.output_lags is None:
+        args.output_lags = DEFAULT_LAGS
+    if args.lag_step is None:
+        args.lag_step = "auto" if tune else 1
+    if tune:
+        print(f"tuning C, sigma by ABC ({args.budget[0]} sources x {args.budget[1]} "
+              f"cycles, {args.objective} objective)", file=sys.stderr, flush=True)
+    model, tuning = identify_lssvm_narx(
+        fit_u, fit_y,
+        C=None if tune else args.C, sigma=None if tune else args.sigma,
+        input_lags=args.input_lags, output_lags=args.output_lags,
+        lag_step=args.lag_step, inverse=args.inverse, seed=args.seed,
+        memory_taus_s=args.memory_taus, dt_s=1.0 / float(rec.rate_hz),
+        n_prototypes=args.prototypes, max_exact=args.max_exact,
+        max_train_rows=args.max_rows, **_tuning_kwargs(args, tune),
+    )
+    _report_tuning(args, tuning, meta)
+    return AugmentedInverse(augmented, model) if augmented is not None else model
 
 
 def _feedforward_space(args, u, y, dt_s: float, meta: dict):

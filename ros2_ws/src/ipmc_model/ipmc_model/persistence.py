@@ -8,7 +8,9 @@ format version, arrays missing or not matching the JSON's checksum).
 Format versions: 1, every model; 2 adds a forward ``lssvm-narx`` model's voltage channels
 (``model.params``: ``input_memory_taus_s``, ``include_voltage``, ``dt_s``); 3 adds the kind
 ``lssvm-narx-committee`` (``model.members``: one ``lssvm-narx`` body each, their arrays named
-``m<i>_centers``, ``m<i>_coef``). A file is written with the lowest version that holds it (a
+``m<i>_centers``, ``m<i>_coef``); 4 adds the kinds ``gpi`` and ``gpi-inverse`` (the
+rate-dependent generalised Prandtl-Ishlinskii model, and the same model served through its
+numerical inverse as a feedforward). A file is written with the lowest version that holds it (a
 model without voltage channels is still version 1, readable by an older ipmc_model);
 version-1 files load as before.
 """
@@ -24,15 +26,19 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ModelFileError, NotFittedError
+from .hysteresis import GeneralizedPI, GpiInverse
 from .lssvm import FixedSizeLSSVMRegressor, LSSVMRegressor
 from .narx import InverseNarxModel, NarxCommittee, NarxModel
 from .play import PrandtlIshlinskii
 
 FORMAT = "ipmc-ros-model"
-FORMAT_VERSION = 3  # the newest this module reads and writes
+FORMAT_VERSION = 4  # the newest this module reads and writes
 #: NarxModel parameters that exist only since format version 2 (voltage channels).
 CHANNEL_PARAMS = ("input_memory_taus_s", "include_voltage", "dt_s")
-KINDS = ("pi", "lssvm-narx", "lssvm-narx-inverse", "lssvm-narx-committee")
+KINDS = ("pi", "lssvm-narx", "lssvm-narx-inverse", "lssvm-narx-committee", "gpi", "gpi-inverse")
+#: The learned scalars and arrays of a GeneralizedPI in a file.
+GPI_SCALARS = ("charge_tau_s_", "slew_v_per_s_", "train_rmse_")
+GPI_ARRAYS = ("thresholds_", "feature_mean_", "feature_scale_", "weights_", "knots_", "map_coef_")
 
 
 def _arrays_path(path: Path) -> Path:
@@ -86,7 +92,9 @@ def save_model(model, path, *, metadata: dict | None = None) -> Path:
     path = Path(path)
     if path.suffix != ".json":
         path = path.with_name(path.name + ".json")
-    if isinstance(model, PrandtlIshlinskii):
+    if isinstance(model, (GeneralizedPI, GpiInverse)):
+        kind, body, arrays = _gpi_doc(model)
+    elif isinstance(model, PrandtlIshlinskii):
         if model.weights_ is None:
             raise NotFittedError("this PrandtlIshlinskii is not fitted yet; nothing to save")
         kind = "pi"
@@ -114,7 +122,7 @@ def save_model(model, path, *, metadata: dict | None = None) -> Path:
             arrays.update({f"m{i}_{k}": v for k, v in a.items()})
     else:
         raise ValueError(f"cannot save an object of type {type(model).__name__}")
-    version = (3 if isinstance(model, NarxCommittee)
+    version = (4 if kind.startswith("gpi") else 3 if isinstance(model, NarxCommittee)
                else 2 if isinstance(model, NarxModel) and model.uses_voltage_channels else 1)
     buf = io.BytesIO()
     np.savez(buf, **{k: np.asarray(v, dtype=float) for k, v in arrays.items()})
@@ -133,6 +141,44 @@ def save_model(model, path, *, metadata: dict | None = None) -> Path:
     _arrays_path(path).write_bytes(blob)
     path.write_text(json.dumps(doc, indent=2, default=_json_default) + "\n")
     return path
+
+
+def _gpi_doc(model) -> tuple[str, dict, dict]:
+    """The kind, JSON body and arrays of a GeneralizedPI or of its inverse (the forward model
+    and the inverse's voltage limit)."""
+    inverse = isinstance(model, GpiInverse)
+    m = model.model if inverse else model
+    if m.weights_ is None:
+        raise NotFittedError("this GeneralizedPI is not fitted yet; nothing to save")
+    body = {"params": m.get_params(), "memory_taus_s_": list(m.memory_taus_s_),
+            "cv": m.cv_.as_dict()}
+    body.update({k: float(getattr(m, k)) for k in GPI_SCALARS})
+    body["delay_samples_"] = int(m.delay_samples_)
+    if inverse:
+        body["u_max_v"] = model.u_max_v
+    return ("gpi-inverse" if inverse else "gpi"), body, {k: getattr(m, k) for k in GPI_ARRAYS}
+
+
+def _build_gpi(body: dict, arrays: dict):
+    from .hysteresis import CvResult
+
+    m = GeneralizedPI(**body["params"])
+    m.memory_taus_s_ = tuple(float(t) for t in body["memory_taus_s_"])
+    for k in GPI_SCALARS:
+        setattr(m, k, float(body[k]))
+    m.delay_samples_ = int(body["delay_samples_"])
+    for k in GPI_ARRAYS:
+        setattr(m, k, np.asarray(arrays[k], dtype=float))
+    cv = body["cv"]
+    m.cv_ = CvResult(tuple(cv["alphas"]), tuple(cv["rmse"]), float(cv["alpha"]),
+                     int(cv["n_folds"]))
+    p = m.feature_mean_.size
+    n_play = m.thresholds_.shape[0]
+    if (m.weights_.size != p + 1 or m.map_coef_.size != m.knots_.size + 1
+            or p != 1 + len(m.memory_taus_s_) + m.thresholds_.size or m.thresholds_.ndim != 2
+            or n_play > 1 + len(m.memory_taus_s_)):
+        raise ValueError("the GPI arrays do not match its channels")
+    return GpiInverse(m, float(body["u_max_v"])) if "u_max_v" in body else m
 
 
 def _json_default(obj):
@@ -243,6 +289,12 @@ def _build_narx(body: dict, arrays: dict, params: dict) -> NarxModel:
 
 
 def _build(kind: str, body: dict, arrays: dict):
+    if kind in ("gpi", "gpi-inverse"):
+        model = _build_gpi(body, arrays)
+        if isinstance(model, GpiInverse) != (kind == "gpi-inverse"):
+            raise ValueError(f"a {kind} body {'without' if kind == 'gpi-inverse' else 'with'} "
+                             "u_max_v")
+        return model
     if kind == "pi":
         m = PrandtlIshlinskii(**body["params"])
         m.thresholds_ = np.asarray(arrays["thresholds"], dtype=float)

@@ -60,6 +60,7 @@ from ipmc_driver.node_runtime import run_node
 from ipmc_driver.qos import DIAGNOSTICS_QOS, PAIRED_SAMPLE_QOS, SAMPLE_QOS
 from ipmc_model.effects import AugmentedInverse, AugmentedModel, load_any_model
 from ipmc_model.forward_inversion import ForwardInversionFeedforward
+from ipmc_model.hysteresis import GpiInverse
 from ipmc_model.narx import (
     HISTORY_VOLTAGES,
     InverseNarxModel,
@@ -97,7 +98,7 @@ DIVERGED_MM = 1e3
 
 
 # What the model server serves as an inverse model (feedforward:=inverse).
-INVERSES = (InverseNarxModel, AugmentedInverse)
+INVERSES = (InverseNarxModel, AugmentedInverse, GpiInverse)
 
 
 class PairHistory:
@@ -252,6 +253,11 @@ def _describe(model) -> str:
     if isinstance(model, AugmentedInverse):
         effects = ", ".join(model.effect_names)
         return f"{_describe(model.inverse)} with the effects undone around it: {effects}"
+    if isinstance(model, GpiInverse):
+        m = model.model
+        return (f"gpi-inverse (numerical inverse of a GPI model: charging tau "
+                f"{m.charge_tau_s_:.3g} s, {len(m.memory_taus_s_)} relaxations, "
+                f"{m.thresholds_.size} plays)")
     if isinstance(model, NarxCommittee):
         centres = sum(m.regressor_.centers_.shape[0] for m in model.members)
         return (f"lssvm-narx-committee ({len(model.members)} models, {centres} centres, max lag "

@@ -1,0 +1,618 @@
+"""Rate-dependent generalised Prandtl-Ishlinskii model (GPI): a structured hysteresis model
+whose free run cannot diverge, for IPMC and piezo actuators.
+
+The voltage u (V) passes through four stages, each an actuator mechanism:
+
+0. **A transport delay** (opt-in, ``max_delay_s``) of whole samples, chosen by least squares
+   of the linear part over 0 .. ``max_delay_s``.
+1. **Ion-current-limited charging** (the double layer of an IPMC, a piezo's amplifier):
+   ``v_k = v_{k-1} + dt S tanh((u_k - v_{k-1}) / (tau S))``, a first-order lag of time constant
+   ``tau`` whose rate saturates at ``S`` V/s. Two parameters, fitted.
+2. **A bank of linear relaxations** spanning the actuator's time scales (tens of ms to
+   minutes: charging, back-relaxation, creep): ``x_j = a_j x_j + (1 - a_j) v``,
+   ``a_j = exp(-dt / tau_j)``, the time constants fixed on a geometric grid (orthonormal-basis
+   identification, where the slow poles are fixed and only their weights are fitted).
+3. **Play operators** (the paper's PI hysteresis, Eq. 2) on the charge and the faster
+   relaxations, thresholds a share of the largest voltage.
+4. **An output map** ``y = g(z)``, ``z = w . phi`` the weighted sum of the channels and plays;
+   ``g`` is piecewise linear (hinges at quantiles of z): the asymmetric, saturating bending
+   of the generalised PI (Al Janaideh, Rakheja & Su).
+
+Every parameter but ``tau``, ``S`` enters linearly or bilinearly, and there is no output
+feedback: the free run is the one-step prediction, bounded for any bounded input. The joint
+fit is SciPy's ``least_squares`` (trust region, analytic Jacobian for the weights and the map,
+finite differences for the two charging parameters); the ridge weight on ``w`` is chosen by
+blocked K-fold cross-validation of the free-run error (each held-out block is scored on the
+output the model simulates from the record's input alone).
+
+:class:`GpiInverse` is its numerical inverse: at each sample the voltage whose model output
+equals the desired displacement, found on the monotone scalar map u_k -> y_k (grid search
+then bisection), from the model's own state; so it is exact to the model wherever the
+actuator's limits allow.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.signal import lfilter
+
+from ipmc_driver.validation import as_signal, same_length
+
+from .errors import check_fitted
+
+#: Relaxation time constants (s), spaced by 3: charging (tens of ms) to creep (minutes).
+DEFAULT_MEMORY_TAUS_S = (0.05, 0.15, 0.45, 1.35, 4.0, 12.0, 36.0, 108.0)
+#: Play thresholds as shares of the largest |u| of the identification record.
+DEFAULT_THRESHOLD_SHARES = (0.1, 0.25, 0.5, 0.75)
+#: Ridge weights tried by the cross-validation (on standardised features, per sample).
+DEFAULT_ALPHAS = tuple(float(a) for a in np.logspace(-9, -2, 8))
+#: A time constant is kept only if the record spans this many of it: slower ones are not
+#: identifiable from it (a relaxation must be seen settling to be told from an offset).
+MIN_SPANS_PER_TAU = 3.0
+#: The charging stage starts at this many samples' time constant (0.3 s at 100 Hz).
+INITIAL_TAU_SAMPLES = 30
+
+
+def rate_limited_charge(u_v, tau_s: float, slew_v_per_s: float, dt_s: float,
+                        v0: float = 0.0) -> np.ndarray:
+    """Ion-current-limited first-order charging of ``u_v`` (V): the stage-1 state, shape (N,).
+
+    Written as a loop: a nonlinear recursion, which no SciPy filter runs.
+    """
+    u = np.asarray(u_v, dtype=float)
+    out = np.empty_like(u)
+    step, gain, tanh = dt_s * slew_v_per_s, 1.0 / (tau_s * slew_v_per_s), math.tanh
+    v = float(v0)
+    for k, uk in enumerate(u.tolist()):
+        v += step * tanh((uk - v) * gain)
+        out[k] = v
+    return out
+
+
+def lowpass_bank(v, taus_s, dt_s: float, state=None) -> tuple[np.ndarray, np.ndarray]:
+    """First-order low-passes of ``v`` with unit DC gain, ``x_k = a x_{k-1} + (1 - a) v_k``:
+    the (N, J) outputs and the last outputs (J,), from ``state`` (J,) before sample 0 or rest."""
+    a = np.exp(-dt_s / np.asarray(taus_s, dtype=float))
+    x0 = np.zeros(a.size) if state is None else np.asarray(state, dtype=float)
+    out = np.empty((np.size(v), a.size))
+    for j, aj in enumerate(a):
+        out[:, j] = lfilter([1.0 - aj], [1.0, -aj], v, zi=[aj * x0[j]])[0]
+    return out, (out[-1].copy() if len(out) else x0.copy())
+
+
+def play_bank(X, thresholds, state=None) -> tuple[np.ndarray, np.ndarray]:
+    """Play operators (paper Eq. 2) on several channels at once.
+
+    X : (N, C) inputs; thresholds : (C, M) half-widths >= 0; state : (C, M) before sample 0.
+    Returns the (N, C * M) outputs and the final (C, M) state.
+    """
+    X = np.asarray(X, dtype=float)
+    r = np.asarray(thresholds, dtype=float)
+    w = np.zeros_like(r) if state is None else np.array(state, dtype=float)
+    out = np.empty((X.shape[0],) + r.shape)
+    for k in range(X.shape[0]):
+        x = X[k, :, None]
+        w = np.maximum(x - r, np.minimum(x + r, w))
+        out[k] = w
+    return out.reshape(X.shape[0], -1), w
+
+
+def hinge_basis(z: np.ndarray, knots: np.ndarray) -> np.ndarray:
+    """Columns z, max(z - k_j, 0): a continuous piecewise-linear map's basis."""
+    return np.column_stack([z, np.maximum(z[:, None] - knots[None, :], 0.0)])
+
+
+def hinge_slope(z: np.ndarray, knots: np.ndarray, coef: np.ndarray) -> np.ndarray:
+    """dg/dz of the piecewise-linear map at ``z``."""
+    return coef[0] + (z[:, None] > knots[None, :]).astype(float) @ coef[1:]
+
+
+def delayed(u: np.ndarray, samples: int, history=None) -> np.ndarray:
+    """``u`` delayed by whole ``samples``, the first ones from ``history`` (oldest first) or 0."""
+    if samples <= 0:
+        return u
+    past = np.zeros(samples) if history is None else np.asarray(history, float)[-samples:]
+    past = np.concatenate([np.zeros(samples - past.size), past])
+    return np.concatenate([past, u])[:u.size]
+
+
+def estimate_delay(u: np.ndarray, y: np.ndarray, dt_s: float, taus_s, max_samples: int) -> int:
+    """Transport delay (samples) whose delayed input best explains ``y`` by least squares
+    through the relaxation bank (a linear model: the delay shows in its phase)."""
+    best, best_sse = 0, math.inf
+    for d in range(max(0, int(max_samples)) + 1):
+        ud = delayed(u, d)
+        X = np.column_stack([ud, lowpass_bank(ud, taus_s, dt_s)[0], np.ones(u.size)])
+        sse = float(np.linalg.lstsq(X, y, rcond=None)[1].sum())
+        if sse < best_sse:
+            best, best_sse = d, sse
+    return best
+
+
+@dataclass(frozen=True)
+class GpiState:
+    """The model's state after a sample: charge v (V), relaxations (J,), plays (C, M)."""
+
+    v: float
+    relax: np.ndarray
+    plays: np.ndarray
+
+
+@dataclass(frozen=True)
+class CvResult:
+    """Blocked cross-validation of the ridge weight: free-run RMSE (output units) per alpha."""
+
+    alphas: tuple[float, ...]
+    rmse: tuple[float, ...]
+    alpha: float
+    n_folds: int
+
+    def as_dict(self) -> dict:
+        return {"alphas": list(self.alphas), "rmse": list(self.rmse), "alpha": self.alpha,
+                "n_folds": self.n_folds}
+
+
+class GeneralizedPI:
+    """Rate-dependent generalised Prandtl-Ishlinskii model, input u (V) -> output y (mm).
+
+    Parameters
+    ----------
+    memory_taus_s : sequence of float
+        Time constants of the relaxation bank (s); those longer than the record / 3 are
+        dropped at fit (``memory_taus_s_`` keeps the rest).
+    play_channels : int
+        Plays act on the charge and the ``play_channels - 1`` fastest relaxations.
+    threshold_shares : sequence of float
+        Play thresholds as shares of max |u| of the identification record.
+    n_knots : int
+        Hinges of the output map.
+    rate_limit : bool
+        Fit the ion-current limit of stage 1 (False: v = u, no charging stage).
+    alphas : sequence of float
+        Ridge weights tried by blocked cross-validation (free-run error).
+    n_folds : int
+        Blocks of the cross-validation.
+    row_step : int
+        Fit on every ``row_step``-th sample (the states run at the full rate).
+    max_nfev : int
+        Trust-region iterations of each joint fit.
+    max_delay_s : float
+        Longest transport delay searched (s); default none: a least-squares delay
+        estimate takes a charging lag for a delay (3 samples on the simulated IPMC, which has
+        none), so a delay is an opt-in stage.
+    dt_s : float
+        Sample period (s) of the data the model is fitted on and run at.
+    progress : callable, optional
+        ``progress(text)`` after each stage of the fit.
+
+    Attributes
+    ----------
+    delay_samples_ : int
+        Transport delay, samples.
+    charge_tau_s_, slew_v_per_s_ : float
+        Stage 1 (``slew_v_per_s_`` inf without ``rate_limit``).
+    memory_taus_s_ : tuple of float
+    thresholds_ : ndarray, shape (play_channels, n_thresholds), V
+    feature_mean_, feature_scale_ : ndarray, shape (p,)
+    weights_ : ndarray, shape (p + 1,)
+        Weights of the standardised features, the last one a constant.
+    knots_ : ndarray, shape (n_knots,)
+    map_coef_ : ndarray, shape (n_knots + 1,)
+    cv_ : CvResult
+    train_rmse_ : float
+    """
+
+    def __init__(self, memory_taus_s=DEFAULT_MEMORY_TAUS_S, play_channels: int = 5,
+                 threshold_shares=DEFAULT_THRESHOLD_SHARES, n_knots: int = 10,
+                 rate_limit: bool = True, alphas=DEFAULT_ALPHAS, n_folds: int = 5,
+                 row_step: int = 2, max_nfev: int = 25, max_delay_s: float = 0.0,
+                 dt_s: float = 0.01, progress=None):
+        self.memory_taus_s = tuple(float(t) for t in memory_taus_s)
+        self.play_channels = play_channels
+        self.threshold_shares = tuple(float(s) for s in threshold_shares)
+        self.n_knots = n_knots
+        self.rate_limit = rate_limit
+        self.alphas = tuple(float(a) for a in alphas)
+        self.n_folds = n_folds
+        self.row_step = row_step
+        self.max_nfev = max_nfev
+        self.max_delay_s = float(max_delay_s)
+        self.dt_s = float(dt_s)
+        self.progress = progress
+        self.weights_ = None
+
+    # -- features ----------------------------------------------------------------------------
+    def _charge(self, u: np.ndarray, theta) -> np.ndarray:
+        u = delayed(u, self.delay_samples_)
+        if not self.rate_limit:
+            return u
+        return rate_limited_charge(u, math.exp(theta[0]), math.exp(theta[1]), self.dt_s)
+
+    def _raw_features(self, u: np.ndarray, theta) -> np.ndarray:
+        v = self._charge(u, theta)
+        relax, _ = lowpass_bank(v, self.memory_taus_s_, self.dt_s)
+        ch = np.column_stack([v, relax])
+        plays, _ = play_bank(ch[:, :self.thresholds_.shape[0]], self.thresholds_)
+        return np.hstack([ch, plays])
+
+    def _design(self, u: np.ndarray, theta) -> np.ndarray:
+        F = (self._raw_features(u, theta) - self.feature_mean_) / self.feature_scale_
+        return np.column_stack([F, np.ones(len(F))])
+
+    @property
+    def _theta(self) -> np.ndarray:
+        if not self.rate_limit:
+            return np.zeros(2)
+        return np.log([self.charge_tau_s_, self.slew_v_per_s_])
+
+    def _check_params(self, n: int) -> None:
+        if int(self.play_channels) < 1 or int(self.n_knots) < 0 or int(self.n_folds) < 2:
+            raise ValueError("play_channels must be >= 1, n_knots >= 0 and n_folds >= 2")
+        if not self.threshold_shares or min(self.threshold_shares) <= 0:
+            raise ValueError("threshold_shares must be positive shares of max |u|")
+        if not (self.dt_s > 0 and math.isfinite(self.dt_s)):
+            raise ValueError(f"dt_s must be a positive sample period (s), got {self.dt_s}")
+        if n < 20 * self.n_folds:
+            raise ValueError(f"{n} samples are too few to identify and cross-validate a "
+                             f"GPI model (at least {20 * self.n_folds})")
+
+    # -- fitting -----------------------------------------------------------------------------
+    def fit(self, u, y) -> GeneralizedPI:
+        """Fit to input ``u`` (V) and output ``y`` (mm), both shape (N,); returns self."""
+        u, y = as_signal("u", u), as_signal("y", y)
+        same_length(u=u, y=y)
+        self._check_params(u.size)
+        if np.ptp(u) == 0.0:
+            raise ValueError("u is constant; a hysteresis model needs a varying input")
+        t0 = time.perf_counter()
+        span_s = u.size * self.dt_s
+        self.memory_taus_s_ = tuple(t for t in self.memory_taus_s
+                                    if t * MIN_SPANS_PER_TAU <= span_s and t > self.dt_s)
+        self.delay_samples_ = estimate_delay(u, y, self.dt_s, self.memory_taus_s_,
+                                             int(round(self.max_delay_s / self.dt_s)))
+        u_max = float(np.max(np.abs(u)))
+        n_play = min(int(self.play_channels), 1 + len(self.memory_taus_s_))
+        self.thresholds_ = np.tile(np.array(self.threshold_shares) * u_max, (n_play, 1))
+        theta0, bounds = self._initial_theta(u, span_s)
+        F0 = self._raw_features(u, theta0)
+        self.feature_mean_ = F0.mean(axis=0)
+        self.feature_scale_ = np.where(F0.std(axis=0) > 0, F0.std(axis=0), 1.0)
+        A0 = np.column_stack([(F0 - self.feature_mean_) / self.feature_scale_, np.ones(u.size)])
+        w0 = np.linalg.lstsq(A0, y, rcond=None)[0]
+        z0 = A0 @ w0
+        self.knots_ = np.quantile(z0, np.linspace(0, 1, int(self.n_knots) + 2)[1:-1])
+        coef0 = np.zeros(int(self.n_knots) + 1)
+        coef0[0] = 1.0
+        x = self._joint_fit(u, y, np.concatenate([theta0, w0, coef0]), bounds,
+                            self.alphas[0])
+        self._say(f"joint fit ({time.perf_counter() - t0:.1f} s)")
+        self.cv_ = self._cross_validate(u, y, x)
+        self._say(f"ridge alpha {self.cv_.alpha:.3g} by {self.cv_.n_folds}-fold blocked "
+                  f"free-run CV ({time.perf_counter() - t0:.1f} s)")
+        if self.cv_.alpha != self.alphas[0]:
+            x = self._joint_fit(u, y, x, bounds, self.cv_.alpha, max(5, self.max_nfev // 3))
+        self._unpack(x)
+        self.train_rmse_ = float(np.sqrt(np.mean((self.simulate(u) - y) ** 2)))
+        self.fit_seconds_ = time.perf_counter() - t0
+        return self
+
+    def _say(self, text: str) -> None:
+        if self.progress is not None:
+            self.progress(text)
+
+    def _initial_theta(self, u: np.ndarray, span_s: float):
+        tau0 = min(INITIAL_TAU_SAMPLES * self.dt_s, span_s / 10)
+        u_max = float(np.max(np.abs(u)))
+        slew0 = u_max / tau0
+        lo = [math.log(self.dt_s), math.log(0.01 * slew0)]
+        hi = [math.log(span_s / 10), math.log(1e4 * u_max / self.dt_s)]
+        return np.log([tau0, slew0]), (lo, hi)
+
+    def _unpack(self, x: np.ndarray) -> None:
+        p = self.feature_mean_.size + 1
+        if self.rate_limit:
+            self.charge_tau_s_, self.slew_v_per_s_ = (float(v) for v in np.exp(x[:2]))
+        else:
+            self.charge_tau_s_, self.slew_v_per_s_ = 0.0, math.inf
+        self.weights_ = np.array(x[2:2 + p])
+        self.map_coef_ = np.array(x[2 + p:])
+
+    def _joint_fit(self, u, y, x0, bounds, alpha: float, max_nfev: int | None = None
+                   ) -> np.ndarray:
+        """theta, w and the map's coefficients by trust-region least squares, ridge ``alpha``
+        on the feature weights (not on the constant)."""
+        rows = np.arange(0, u.size, max(1, int(self.row_step)))
+        p, kn = self.feature_mean_.size + 1, self.knots_
+        ridge = math.sqrt(alpha * rows.size)
+        n_theta = 2 if self.rate_limit else 0
+        cache: dict = {}
+
+        def design(theta):
+            key = tuple(np.round(theta, 12))
+            if key not in cache:
+                cache.clear()
+                cache[key] = self._design(u, theta)[rows]
+            return cache[key]
+
+        def split(x):
+            return x[:2], x[2:2 + p], x[2 + p:]
+
+        def residual(x):
+            th, w, c = split(x)
+            return np.concatenate([hinge_basis(design(th) @ w, kn) @ c - y[rows], ridge * w[:-1]])
+
+        def jacobian(x):
+            th, w, c = split(x)
+            A = design(th)
+            z = A @ w
+            base = hinge_basis(z, kn) @ c
+            cols = []
+            for i in range(n_theta):  # finite differences through the charging recursion
+                t2 = th.copy()
+                t2[i] += 1e-4
+                cols.append((hinge_basis(self._design(u, t2)[rows] @ w, kn) @ c - base) / 1e-4)
+            cols += [np.zeros(rows.size)] * (2 - n_theta)
+            top = np.hstack([np.column_stack(cols), A * hinge_slope(z, kn, c)[:, None],
+                             hinge_basis(z, kn)])
+            bottom = np.zeros((p - 1, top.shape[1]))
+            bottom[:, 2:p + 1] = ridge * np.eye(p - 1)
+            return np.vstack([top, bottom])
+
+        lo = np.full(x0.size, -np.inf)
+        hi = np.full(x0.size, np.inf)
+        if self.rate_limit:
+            lo[:2], hi[:2] = bounds
+        else:
+            lo[:2], hi[:2] = -1.0, 1.0  # unused: no charging stage
+        x0 = np.clip(x0, lo + 1e-9, hi - 1e-9)
+        res = least_squares(residual, x0, jac=jacobian, bounds=(lo, hi), method="trf",
+                            x_scale="jac", max_nfev=int(max_nfev or self.max_nfev))
+        return res.x
+
+    def _cross_validate(self, u, y, x) -> CvResult:
+        """Ridge weight by blocked K-fold CV: the map linearised at the joint fit (one
+        Gauss-Newton step in w per alpha and fold), scored on the held-out block's free run."""
+        p = self.feature_mean_.size + 1
+        A = self._design(u, x[:2])
+        w, c = x[2:2 + p], x[2 + p:]
+        z = A @ w
+        slope = hinge_slope(z, self.knots_, c)
+        target = y - hinge_basis(z, self.knots_) @ c + slope * z
+        edges = np.linspace(0, u.size, int(self.n_folds) + 1).round().astype(int)
+        sse = np.zeros(len(self.alphas))
+        for a, b in zip(edges[:-1], edges[1:], strict=True):
+            train = np.ones(u.size, dtype=bool)
+            train[a:b] = False
+            D = A[train] * slope[train, None]
+            U, s, Vt = np.linalg.svd(D, full_matrices=False)
+            proj = U.T @ target[train]
+            for i, alpha in enumerate(self.alphas):
+                # the constant is penalised too, lightly: alpha * n is tiny beside its s^2
+                wa = Vt.T @ (s / (s ** 2 + alpha * train.sum()) * proj)
+                sse[i] += np.sum((hinge_basis(A[a:b] @ wa, self.knots_) @ c - y[a:b]) ** 2)
+        rmse = np.sqrt(sse / u.size)
+        best = int(np.argmin(rmse))
+        return CvResult(self.alphas, tuple(float(v) for v in rmse), self.alphas[best],
+                        int(self.n_folds))
+
+    # -- use ---------------------------------------------------------------------------------
+    def simulate(self, u) -> np.ndarray:
+        """Free-run output (mm), shape (N,), from input ``u`` (V), every state from rest."""
+        check_fitted(self, "weights_")
+        z = self._design(as_signal("u", u), self._theta) @ self.weights_
+        return hinge_basis(z, self.knots_) @ self.map_coef_
+
+    def predict(self, u, y=None) -> np.ndarray:
+        """One-step prediction; the model has no output feedback, so this equals simulate."""
+        return self.simulate(u)
+
+    @property
+    def max_lag_(self) -> int:
+        """Measured samples a free run needs to start: none."""
+        return 0
+
+    @property
+    def history_samples(self) -> int:
+        """Past samples a stepper going on from a history needs: five of its slowest time
+        constants (its states then within 0.7 % of those of an uninterrupted run)."""
+        check_fitted(self, "weights_")
+        slow = max(self.memory_taus_s_ + (self.charge_tau_s_,))
+        return max(1, math.ceil(5.0 * slow / self.dt_s))
+
+    def stepper(self, u_history=None) -> GpiStepper:
+        """Sample-by-sample model, going on from ``u_history`` (V, oldest first) or from rest."""
+        check_fitted(self, "weights_")
+        return GpiStepper(self, u_history)
+
+    def inverse(self, u_max_v: float = 3.0) -> GpiInverse:
+        """The numerical inverse (feedforward): desired y (mm) -> u (V), |u| <= ``u_max_v``."""
+        check_fitted(self, "weights_")
+        return GpiInverse(self, u_max_v)
+
+    def get_params(self) -> dict:
+        """Constructor hyperparameters (for persistence)."""
+        return {"memory_taus_s": list(self.memory_taus_s), "play_channels": self.play_channels,
+                "threshold_shares": list(self.threshold_shares), "n_knots": self.n_knots,
+                "rate_limit": self.rate_limit, "alphas": list(self.alphas),
+                "n_folds": self.n_folds, "row_step": self.row_step,
+                "max_nfev": self.max_nfev, "max_delay_s": self.max_delay_s, "dt_s": self.dt_s}
+
+
+class GpiStepper:
+    """A :class:`GeneralizedPI` one sample at a time: ``step(u_v) -> y_mm``.
+
+    ``outputs(x)`` evaluates candidate voltages reaching the charging stage now (after the
+    transport delay) without advancing; ``advance(x)`` applies one. The numerical inverse works
+    on that delay-free core: its voltages reach the charge ``delay_samples_`` later.
+    """
+
+    def __init__(self, model: GeneralizedPI, u_history=None):
+        self._m = model
+        self._a = np.exp(-model.dt_s / np.asarray(model.memory_taus_s_, dtype=float))
+        self.reset(u_history)
+
+    def reset(self, u_history=None) -> None:
+        """Go on from ``u_history`` (V, oldest first), or from rest."""
+        m = self._m
+        d = int(m.delay_samples_)
+        if u_history is None or len(u_history) == 0:
+            self._queue = deque([0.0] * d)
+            self.state = GpiState(0.0, np.zeros(self._a.size), np.zeros(m.thresholds_.shape))
+            return
+        u = as_signal("u_history", u_history)
+        past = u.tolist()[-d:] if d else []
+        self._queue = deque([0.0] * (d - len(past)) + past)
+        v = m._charge(u, m._theta)
+        relax, zf = lowpass_bank(v, m.memory_taus_s_, m.dt_s)
+        ch = np.column_stack([v, relax])
+        _, plays = play_bank(ch[:, :m.thresholds_.shape[0]], m.thresholds_)
+        self.state = GpiState(float(v[-1]), zf, plays)
+
+    def _channels(self, x: np.ndarray):
+        """Charge v (G,), relaxations (G, J), plays (G, C, M) after charge inputs ``x`` (G,)."""
+        m, s = self._m, self.state
+        if m.rate_limit:
+            v = s.v + m.dt_s * m.slew_v_per_s_ * np.tanh(
+                (x - s.v) / (m.charge_tau_s_ * m.slew_v_per_s_))
+        else:
+            v = x
+        relax = self._a * s.relax + (1.0 - self._a) * v[:, None]
+        ch = np.column_stack([v, relax])[:, :m.thresholds_.shape[0], None]
+        plays = np.maximum(ch - m.thresholds_, np.minimum(ch + m.thresholds_, s.plays))
+        return v, relax, plays
+
+    def _output(self, v, relax, plays) -> np.ndarray:
+        m = self._m
+        phi = np.column_stack([v, relax, plays.reshape(v.size, -1)])
+        z = ((phi - m.feature_mean_) / m.feature_scale_) @ m.weights_[:-1] + m.weights_[-1]
+        return hinge_basis(z, m.knots_) @ m.map_coef_
+
+    def outputs(self, x_candidates) -> np.ndarray:
+        """Model outputs (mm) for candidate charge inputs (V) of this sample; state unchanged."""
+        return self._output(*self._channels(np.atleast_1d(np.asarray(x_candidates, float))))
+
+    def advance(self, x_v: float) -> float:
+        """One sample with ``x_v`` (V) reaching the charging stage; returns the output (mm)."""
+        v, relax, plays = self._channels(np.array([float(x_v)]))
+        y = float(self._output(v, relax, plays)[0])
+        self.state = GpiState(float(v[0]), relax[0], plays[0])
+        return y
+
+    def step(self, u_v: float) -> float:
+        """Apply ``u_v`` (V) for one sample, through the delay; returns the output (mm)."""
+        x = float(u_v)
+        if self._queue:
+            self._queue.append(x)
+            x = self._queue.popleft()
+        return self.advance(x)
+
+
+#: Voltage grid of the inverse's search per sample, then bisection rounds on the bracket.
+INVERSE_GRID_POINTS = 49
+INVERSE_REFINE_ROUNDS = 3
+
+
+class GpiInverse:
+    """Numerical inverse of a :class:`GeneralizedPI`: desired y (mm) -> voltage (V).
+
+    Each sample it searches the voltage in [-u_max_v, u_max_v] whose model output equals the
+    desired displacement, from the model's state (grid, then bracket refinement and a linear
+    interpolation on the last bracket); beyond the actuator's reach it returns the voltage
+    that comes closest. The voltage is the one the charging stage needs now: with a transport
+    delay the feedforward lags by it (no preview of the reference), and the PID of the hybrid
+    loop takes up the rest. The served interface of an inverse model: ``stepper(y_history,
+    u_history)``, ``simulate(y_desired)``, ``history_samples``, ``max_lag_``.
+    """
+
+    def __init__(self, model: GeneralizedPI, u_max_v: float = 3.0):
+        check_fitted(model, "weights_")
+        if not u_max_v > 0:
+            raise ValueError(f"u_max_v must be > 0, got {u_max_v}")
+        self.model = model
+        self.u_max_v = float(u_max_v)
+
+    @property
+    def max_lag_(self) -> int:
+        return 0
+
+    @property
+    def history_samples(self) -> int:
+        return self.model.history_samples
+
+    @property
+    def dt_s(self) -> float:
+        return self.model.dt_s
+
+    def stepper(self, y_history=None, u_history=None) -> GpiInverseStepper:
+        """Sample-by-sample feedforward; the state goes on from ``u_history`` (V)."""
+        return GpiInverseStepper(self, u_history)
+
+    def simulate(self, y_desired, u_init=None) -> np.ndarray:
+        """Voltages (V) for a desired trajectory (mm), from rest."""
+        y = as_signal("y_desired", y_desired)
+        s = self.stepper()
+        return np.array([s.step(v) for v in y.tolist()])
+
+    def predict(self, y, u) -> np.ndarray:
+        """One-step inverse: each voltage from the state the measured voltages ``u`` left."""
+        y, u = as_signal("y", y), as_signal("u", u)
+        s, out = self.stepper(), np.empty(y.size)
+        for k in range(y.size):
+            out[k] = s.step(y[k])
+            s.record_applied(u[k])
+        return out
+
+
+class GpiInverseStepper:
+    """One feedforward step: ``step(y_desired_mm) -> u_v``; ``record_applied(u_v)`` replaces
+    the returned voltage by the one that reached the actuator (PID added, limits)."""
+
+    def __init__(self, inverse: GpiInverse, u_history=None):
+        self._inv = inverse
+        self._fwd = GpiStepper(inverse.model, u_history)
+        self._before = None
+
+    def step(self, y_desired_mm: float) -> float:
+        """Desired displacement (mm) -> feedforward voltage (V); advances the model."""
+        lim = self._inv.u_max_v
+        grid = np.linspace(-lim, lim, INVERSE_GRID_POINTS)
+        y_target = float(y_desired_mm)
+        for _ in range(INVERSE_REFINE_ROUNDS + 1):
+            err = self._fwd.outputs(grid) - y_target
+            i, j = _bracket(err)
+            lo, hi, e_lo, e_hi = grid[i], grid[j], err[i], err[j]
+            if i == j:
+                break
+            grid = np.linspace(lo, hi, 9)
+        u = lo if i == j or e_hi == e_lo else lo - e_lo * (hi - lo) / (e_hi - e_lo)
+        u = float(np.clip(u, -lim, lim))
+        self._before = self._fwd.state
+        self._fwd.advance(u)
+        return u
+
+    def record_applied(self, u_applied_v: float) -> None:
+        """Advance the model's state by the applied voltage instead of the returned one."""
+        if self._before is not None:
+            self._fwd.state = self._before
+            self._fwd.advance(float(u_applied_v))
+
+
+def _bracket(err: np.ndarray) -> tuple[int, int]:
+    """Indices (i, i + 1) of the cell where ``err`` changes sign nearest its smallest |err|;
+    (i, i) at that smallest |err| where it never does (the target is out of reach)."""
+    best = int(np.argmin(np.abs(err)))
+    cross = np.flatnonzero(np.sign(err[:-1]) * np.sign(err[1:]) <= 0)
+    if not cross.size:
+        return best, best
+    i = int(cross[np.argmin(np.abs(cross - best))])
+    return i, i + 1
+
+
+__all__ = ["CvResult", "GeneralizedPI", "GpiInverse", "GpiInverseStepper", "GpiState",
+           "GpiStepper", "hinge_basis", "lowpass_bank", "play_bank", "rate_limited_charge"]

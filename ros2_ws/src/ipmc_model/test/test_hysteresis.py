@@ -1,0 +1,162 @@
+"""The GPI model (ipmc_model.hysteresis): free run, stepper, numerical inverse, model files,
+and ``ipmc identify``'s default comparison of families."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from ipmc_driver.dataio import Record, save_csv
+from ipmc_driver.plant import IpmcPlant
+from ipmc_driver.signals import mixed, random_sine, sine
+from ipmc_model.errors import ModelFileError
+from ipmc_model.hysteresis import GeneralizedPI, GpiInverse, delayed, rate_limited_charge
+from ipmc_model.identify_cli import identify_main
+from ipmc_model.persistence import load_model, save_model
+from ipmc_model.selection import LinearArx, record_limits
+
+
+def _rmse(a, b) -> float:
+    return float(np.sqrt(np.mean((np.asarray(a) - np.asarray(b)) ** 2)))
+
+
+@pytest.fixture(scope="module")
+def rig_model():
+    _, u = mixed(180.0, 100.0, 3.0, (0.02, 0.8), seed=1)
+    y = IpmcPlant(seed=1).run(u).y_mm
+    return GeneralizedPI().fit(u, y)
+
+
+def test_fit_finds_the_plants_ion_current_limit_and_charging(rig_model):
+    # the simulated IPMC charges with tau 0.2967 s under a 11.94 V/s ion-current limit
+    assert rig_model.charge_tau_s_ == pytest.approx(0.2967, rel=0.2)
+    assert rig_model.slew_v_per_s_ == pytest.approx(11.94, rel=0.2)
+    assert rig_model.cv_.alpha in rig_model.alphas and len(rig_model.cv_.rmse) == 8
+
+
+def test_free_run_on_another_input_is_near_the_noise_floor(rig_model):
+    _, u = random_sine(60.0, 100.0, 3.0, band_hz=(0.02, 0.8), seed=2)
+    y = IpmcPlant(seed=2).run(u).y_mm
+    e = _rmse(rig_model.simulate(u), y)
+    arx = _rmse(LinearArx().fit(*_train_pair()).simulate(u), y)
+    assert e < 0.05 and e < arx / 5
+
+
+def _train_pair():
+    _, u = mixed(180.0, 100.0, 3.0, (0.02, 0.8), seed=1)
+    return u, IpmcPlant(seed=1).run(u).y_mm
+
+
+def test_stepper_is_the_free_run_and_goes_on_from_a_history(rig_model):
+    _, u = random_sine(20.0, 100.0, 3.0, seed=5)
+    ys = rig_model.simulate(u)
+    s = rig_model.stepper()
+    np.testing.assert_allclose([s.step(v) for v in u], ys, atol=1e-10)
+    s2 = rig_model.stepper(u[:1200])
+    np.testing.assert_allclose([s2.step(v) for v in u[1200:]], ys[1200:], atol=1e-9)
+
+
+def test_inverse_is_exact_to_the_model_within_reach(rig_model):
+    _, u = sine(1.5, 0.3, 20.0)
+    y_desired = rig_model.simulate(u)
+    u_inv = rig_model.inverse().simulate(y_desired)
+    np.testing.assert_allclose(rig_model.simulate(u_inv), y_desired, atol=1e-6)
+    assert np.max(np.abs(u_inv)) <= 3.0
+
+
+def test_inverse_beyond_reach_holds_the_limit(rig_model):
+    u = rig_model.inverse().simulate(np.full(300, 50.0))
+    assert np.all(u == 3.0)
+
+
+def test_record_applied_replaces_the_returned_voltage(rig_model):
+    inv = rig_model.inverse()
+    a, b = inv.stepper(), inv.stepper()
+    u_a = a.step(0.005)
+    assert abs(u_a) < 3.0  # within reach: the replaced voltage matters
+    a.record_applied(0.0)
+    b.step(0.005)
+    assert a.step(0.006) != pytest.approx(b.step(0.006), abs=1e-3)
+
+
+def test_charge_and_delay_stages():
+    u = np.r_[np.zeros(5), np.full(200, 3.0)]
+    v = rate_limited_charge(u, 0.3, 5.0, 0.01)
+    assert np.max(np.diff(v)) <= 5.0 * 0.01 + 1e-12  # the ion-current limit
+    assert v[-1] == pytest.approx(3.0 * (1 - 1e-3), rel=5e-3) or v[-1] < 3.0
+    np.testing.assert_array_equal(delayed(np.arange(5.0), 2), [0, 0, 0, 1, 2])
+
+
+def test_model_files_round_trip_and_refuse_a_changed_array(rig_model, tmp_path):
+    _, u = random_sine(10.0, 100.0, 3.0, seed=3)
+    path = save_model(rig_model, tmp_path / "gpi")
+    np.testing.assert_array_equal(load_model(path).simulate(u), rig_model.simulate(u))
+    ipath = save_model(rig_model.inverse(), tmp_path / "inv")
+    inv = load_model(ipath)
+    assert isinstance(inv, GpiInverse)
+    np.testing.assert_array_equal(inv.simulate(u), rig_model.inverse().simulate(u))
+    npz = path.with_suffix(".npz")
+    npz.write_bytes(npz.read_bytes()[:-3] + b"xyz")
+    with pytest.raises(ModelFileError, match="checksum"):
+        load_model(path)
+
+
+def _csv(tmp_path, name, u, y, rate_hz=100.0):
+    t = np.arange(u.size) / rate_hz
+    return str(save_csv(Record(t_s=t, u_v=u, y_mm=y), tmp_path / name))
+
+
+def test_identify_with_no_flag_compares_families_and_keeps_the_table(tmp_path, capsys):
+    _, u = mixed(120.0, 100.0, 3.0, (0.02, 0.8), seed=4)
+    data = _csv(tmp_path, "rec.csv", u, IpmcPlant(seed=4).run(u).y_mm)
+    assert identify_main(["--data", data, "--out", str(tmp_path / "m.json")]) == 0
+    out = capsys.readouterr().out
+    assert "held-out free-run RMSE" in out and "<- chosen" in out
+    doc = json.loads((tmp_path / "m.json").read_text())
+    sel = doc["metadata"]["selection"]
+    rows = {r["family"]: r for r in sel["families"]}
+    assert set(rows) == {"gpi", "pi"} and sel["chosen"] == doc["kind"] == "gpi"
+    assert rows["gpi"]["held_out_free_run_rmse_mm"] < rows["pi"]["held_out_free_run_rmse_mm"]
+
+
+def test_one_periodic_sine_gets_the_warning_and_the_model_does_not_collapse(tmp_path, capsys):
+    _, u = sine(2.5, 0.25, 120.0)
+    y = IpmcPlant(seed=8).run(u).y_mm
+    data = _csv(tmp_path, "sine.csv", u, y)
+    assert identify_main(["--data", data, "--out", str(tmp_path / "m.json")]) == 0
+    assert "one periodic excitation" in capsys.readouterr().err
+    model = load_model(tmp_path / "m.json")
+    _, uv = random_sine(60.0, 100.0, 3.0, band_hz=(0.02, 0.8), seed=9)
+    yv = IpmcPlant(seed=9).run(uv).y_mm
+    arx = LinearArx(6, 6).fit(u, y)
+    assert _rmse(model.simulate(uv), yv) <= _rmse(arx.simulate(uv), yv)
+
+
+def test_record_limits_are_silent_on_a_rich_record():
+    _, u = mixed(600.0, 100.0, 3.0, (0.02, 0.8), seed=1)
+    assert record_limits(u, 100.0) == []
+
+
+def test_identify_refuses_bad_input_in_one_sentence(tmp_path, capsys):
+    out = tmp_path / "m.json"
+    assert identify_main(["--data", str(tmp_path / "none.csv"), "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("ipmc identify: error:") and "\n" not in err
+    assert not out.exists() and not out.with_suffix(".npz").exists()
+    _, u = mixed(60.0, 100.0, 3.0, (0.02, 0.8), seed=4)
+    data = _csv(tmp_path, "rec.csv", u, IpmcPlant(seed=4).run(u).y_mm)
+    assert identify_main(["--data", data, "--model", "gpi", "--memory-taus", "1",
+                          "--out", str(out)]) == 1
+    assert "lssvm-narx" in capsys.readouterr().err and not out.exists()
+
+
+def test_gpi_inverse_tracks_a_sine_in_the_hybrid_loop(rig_model):
+    from ipmc_control.experiment import run_tracking
+    from ipmc_control.references import SineReference
+
+    res = run_tracking(SineReference(amplitude_mm=2.5, frequency_hz=1 / (2 * math.pi)), 25.0,
+                       "hybrid", inverse=rig_model.inverse())
+    assert res.summary()["rmse_mm"] < 0.02
