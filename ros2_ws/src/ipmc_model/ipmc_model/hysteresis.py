@@ -91,16 +91,28 @@ def play_bank(X, thresholds, state=None) -> tuple[np.ndarray, np.ndarray]:
 
     X : (N, C) inputs; thresholds : (C, M) half-widths >= 0; state : (C, M) before sample 0.
     Returns the (N, C * M) outputs and the final (C, M) state.
+
+    A play step is a clip, ``w_k = clip(w_{k-1}, x_k - r, x_k + r)``, and clips compose into
+    clips (``clip(clip(w, a1, b1), a2, b2) = clip(w, clip(a1, a2, b2), clip(b1, a2, b2))``),
+    so the whole run is a prefix scan of log2(N) vectorised passes instead of N Python steps.
     """
     X = np.asarray(X, dtype=float)
     r = np.asarray(thresholds, dtype=float)
-    w = np.zeros_like(r) if state is None else np.array(state, dtype=float)
-    out = np.empty((X.shape[0],) + r.shape)
-    for k in range(X.shape[0]):
-        x = X[k, :, None]
-        w = np.maximum(x - r, np.minimum(x + r, w))
-        out[k] = w
-    return out.reshape(X.shape[0], -1), w
+    w0 = np.zeros_like(r) if state is None else np.array(state, dtype=float)
+    lo, hi = X[:, :, None] - r, X[:, :, None] + r
+    shift = 1
+    while shift < X.shape[0]:  # Hillis-Steele scan: F_k <- F_k o F_(k - shift)
+        new_lo = np.minimum(np.maximum(lo[:-shift], lo[shift:]), hi[shift:])
+        new_hi = np.minimum(np.maximum(hi[:-shift], lo[shift:]), hi[shift:])
+        lo[shift:], hi[shift:] = new_lo, new_hi
+        shift *= 2
+    out = np.minimum(np.maximum(w0, lo), hi)
+    return out.reshape(X.shape[0], -1), (out[-1].copy() if len(out) else w0)
+
+
+def place_knots(z: np.ndarray, n: int) -> np.ndarray:
+    """Hinges of the output map at ``n`` quantiles of z (as many samples between any two)."""
+    return np.quantile(z, np.linspace(0, 1, n + 2)[1:-1])
 
 
 def hinge_basis(z: np.ndarray, knots: np.ndarray) -> np.ndarray:
@@ -286,7 +298,7 @@ class GeneralizedPI:
         A0 = np.column_stack([(F0 - self.feature_mean_) / self.feature_scale_, np.ones(u.size)])
         w0 = np.linalg.lstsq(A0, y, rcond=None)[0]
         z0 = A0 @ w0
-        self.knots_ = np.quantile(z0, np.linspace(0, 1, int(self.n_knots) + 2)[1:-1])
+        self.knots_ = place_knots(z0, int(self.n_knots))
         coef0 = np.zeros(int(self.n_knots) + 1)
         coef0[0] = 1.0
         x = self._joint_fit(u, y, np.concatenate([theta0, w0, coef0]), bounds,

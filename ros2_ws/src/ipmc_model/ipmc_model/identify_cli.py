@@ -29,7 +29,7 @@ from .metrics import score
 from .narx import PAPER_C, PAPER_SIGMA, InverseNarxModel, NarxModel
 from .persistence import save_model
 from .play import PrandtlIshlinskii
-from .selection import FAMILIES, compare_families, record_limits
+from .selection import FAMILIES, compare_families, record_limits, unlike_identification
 from .tuning import (
     DEFAULT_CYCLES,
     DEFAULT_LAG_STEPS,
@@ -273,7 +273,8 @@ def identify_main(argv: list[str] | None = None) -> int:
         u, y = rec.u_v, rec.y_mm
         # the kind of input kept with the model: ipmc diagnose --model checks a record against it
         meta = {"data": str(args.data), "samples": int(u.size), "rate_hz": float(rec.rate_hz),
-                "input_kind": input_kind(u, float(rec.rate_hz))}
+                "input_kind": input_kind(u, float(rec.rate_hz)),
+                "input_range_v": [float(u.min()), float(u.max())]}
         if args.effects_from and (args.model != "lssvm-narx" or not args.inverse):
             raise ValueError("--effects-from makes a feedforward: it needs --model lssvm-narx "
                              "--inverse")
@@ -477,9 +478,15 @@ def evaluate_main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"ipmc evaluate: error: {exc}", file=sys.stderr)
         return 1
+    notes = unlike_identification(getattr(model, "metadata_", {}) or {}, rec.u_v,
+                                  float(rec.rate_hz))
+    for why in notes:
+        print(f"note: this record is unlike the identification record: {why}",
+              file=sys.stderr)
     _print_metrics(result, "evaluation")
     if args.json:
         doc = {k: result[k] for k in ("free_run", "one_step", "units", "samples_skipped")}
+        doc["unlike_identification"] = notes
         out = Path(args.json)
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(doc, indent=2) + "\n")

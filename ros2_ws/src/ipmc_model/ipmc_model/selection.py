@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 from scipy.signal import lfilter
@@ -230,10 +231,44 @@ def record_limits(u, rate_hz: float) -> list[str]:
     return out
 
 
+#: A record reaching beyond the identified voltages by more than this share of their span
+#: asks the model to extrapolate.
+RANGE_SHARE = 0.05
+
+
+def unlike_identification(metadata: dict, u, rate_hz: float) -> list[str]:
+    """How a record (u V at ``rate_hz``) differs from the one a model was identified on, as
+    its file's ``metadata`` keeps it (rate, input range, bandwidth and holds), one sentence
+    each; empty when it does not differ, or when the file does not say."""
+    from .diagnose import input_kind, kind_text, kinds_differ, model_input_kind
+
+    u = as_signal("u", u)
+    out = []
+    rate = metadata.get("rate_hz") if isinstance(metadata, dict) else None
+    if isinstance(rate, int | float) and abs(rate - rate_hz) > 1e-6 * rate:
+        out.append(f"the record is sampled at {rate_hz:g} Hz, the model was identified at "
+                   f"{rate:g} Hz")
+    span = metadata.get("input_range_v") if isinstance(metadata, dict) else None
+    if isinstance(span, list) and len(span) == 2:
+        lo, hi = float(span[0]), float(span[1])
+        beyond = max(float(u.max()) - hi, lo - float(u.min()), 0.0)
+        if beyond > RANGE_SHARE * (hi - lo):
+            out.append(f"the input reaches {float(u.min()):.3g} .. {float(u.max()):.3g} V, beyond "
+                       f"the identified {lo:.3g} .. {hi:.3g} V: the model extrapolates there")
+    kind = model_input_kind(SimpleNamespace(metadata_=metadata))
+    if kind is not None:
+        now = input_kind(u, rate_hz)
+        if kinds_differ(kind, now):
+            out.append(f"the input is of another kind ({kind_text(now)}) than the "
+                       f"identification record's ({kind_text(kind)}): the error measures "
+                       "generalisation to it")
+    return out
+
+
 def _local_peaks(x: np.ndarray) -> np.ndarray:
     i = np.flatnonzero((x[1:-1] > x[:-2]) & (x[1:-1] >= x[2:])) + 1
     return x[i][x[i] > 0.2 * x.max()] if i.size else i.astype(float)
 
 
 __all__ = ["FAMILIES", "FIT_SHARE", "Family", "FamilyScore", "LinearArx", "Selection",
-           "compare_families", "record_limits"]
+           "compare_families", "record_limits", "unlike_identification"]

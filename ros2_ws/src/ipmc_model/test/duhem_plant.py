@@ -21,10 +21,12 @@ def duhem_plant(u_v, seed: int = 0, dt_s: float = 0.01) -> np.ndarray:
     u = np.concatenate([np.zeros(4), np.asarray(u_v, float)])[:len(u_v)]
     h, out = 0.0, np.empty(u.size)
     prev = 0.0
-    for k, uk in enumerate(u):  # dh = a |du| (c u - h) + b du, exact over a sample's du
-        du = uk - prev
-        h += (0.8 * uk - h) * (1.0 - np.exp(-0.9 * abs(du))) + 0.35 * du
-        prev = uk
+    for k, uk in enumerate(u):  # dh = a |du| (c u - h) + b du along the path, in 0.01 V steps
+        n = max(1, int(np.ceil(abs(uk - prev) / 0.01)))
+        for x in np.linspace(prev, uk, n + 1)[1:]:
+            du = x - prev
+            h += 0.9 * abs(du) * (0.8 * x - h) + 0.35 * du
+            prev = x
         out[k] = h
     a1, a2 = np.exp(-dt_s / 0.8), np.exp(-dt_s / 8.0)
     x = (out - 0.4 * lfilter([1 - a1], [1, -a1], out)

@@ -14,7 +14,7 @@ from ipmc_driver.plant import IpmcPlant
 from ipmc_driver.signals import mixed, random_sine, sine
 from ipmc_model.errors import ModelFileError
 from ipmc_model.hysteresis import GeneralizedPI, GpiInverse, delayed, rate_limited_charge
-from ipmc_model.identify_cli import identify_main
+from ipmc_model.identify_cli import evaluate_main, identify_main
 from ipmc_model.persistence import load_model, save_model
 from ipmc_model.selection import LinearArx, record_limits
 
@@ -160,3 +160,20 @@ def test_gpi_inverse_tracks_a_sine_in_the_hybrid_loop(rig_model):
     res = run_tracking(SineReference(amplitude_mm=2.5, frequency_hz=1 / (2 * math.pi)), 25.0,
                        "hybrid", inverse=rig_model.inverse())
     assert res.summary()["rmse_mm"] < 0.02
+
+
+def test_evaluate_says_when_a_record_is_unlike_the_identification_record(tmp_path, capsys):
+    _, u = sine(2.0, 0.16, 40.0)
+    data = _csv(tmp_path, "sine.csv", u, IpmcPlant(seed=3).run(u).y_mm)
+    assert identify_main(["--data", data, "--model", "pi", "--out", str(tmp_path / "m")]) == 0
+    _, uv = random_sine(40.0, 100.0, 3.0, band_hz=(0.02, 0.8), seed=4)
+    other = _csv(tmp_path, "rs.csv", uv, IpmcPlant(seed=4).run(uv).y_mm)
+    capsys.readouterr()
+    assert evaluate_main(["--model", str(tmp_path / "m.json"), "--data", data]) == 0
+    assert "unlike" not in capsys.readouterr().err
+    js = tmp_path / "e.json"
+    assert evaluate_main(["--model", str(tmp_path / "m.json"), "--data", other,
+                          "--json", str(js)]) == 0
+    err = capsys.readouterr().err
+    assert "beyond the identified -2 .. 2 V" in err and "another kind" in err
+    assert len(json.loads(js.read_text())["unlike_identification"]) == 2
