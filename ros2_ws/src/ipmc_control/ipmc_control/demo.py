@@ -44,11 +44,8 @@ TRAIN_INVERSE = ["--input", "random-sine", "--amplitude", "3", "--frequency", "0
 # lag step 10.
 LSSVM_NARX = ["--model", "lssvm-narx", "--lag-step", "10"]
 # The paper's inverse LSSVM-NARX, for the feedforward with effects undone around it (ipmc
-# identify --effects-from needs it): no past voltages, 10 displacement lags 20 ms apart, a
-# memory channel (the desired displacement low-passed at 1 s, the back-relaxation's inverse).
-INVERSE = ["--model", "lssvm-narx", "--inverse", "--tune", "none", "--C", "1e4", "--sigma", "2",
-           "--input-lags", "0", "--output-lags", "10", "--lag-step", "2", "--prototypes", "800",
-           "--memory-taus", "1.0"]
+# identify --effects-from needs it); its defaults are docs/control.md's recipe.
+INVERSE = ["--model", "lssvm-narx", "--inverse"]
 # The record of the defaults (`ipmc identify` and `ipmc identify --inverse`) and of a forward
 # LSSVM on the voltage low-passed at 0.3 s and 0.5 s inverted online (docs/control.md): it must
 # hold large voltages long, not only pass through them: the `mixed` input.

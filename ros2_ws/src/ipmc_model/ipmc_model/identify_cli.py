@@ -50,6 +50,15 @@ DEFAULT_INVERSE_INPUT_LAGS = 0
 #: NFIR in the low-passed voltages that inverts smoothly (docs/control.md, "Feedforward from
 #: the forward model").
 DEFAULT_CHANNEL_LAGS = 0
+#: What an lssvm-narx option not given on the command line is: forward, the ABC-tuned model of
+#: the paper; inverse (--inverse), the recipe of docs/control.md (no past voltages, 10
+#: displacement lags 20 ms apart, a memory channel at 1 s: the back-relaxation's inverse), which
+#: tracks better in hybrid than the ABC-tuned inverse (docs/control.md).
+NARX_DEFAULTS = {"tune": "abc", "C": PAPER_C, "sigma": PAPER_SIGMA,
+                 "prototypes": DEFAULT_PROTOTYPES, "memory_taus": ()}
+NARX_INVERSE_DEFAULTS = {"tune": "none", "C": 1e4, "sigma": 2.0, "input_lags": 0,
+                         "output_lags": 10, "lag_step": 2, "prototypes": 800,
+                         "memory_taus": (1.0,)}
 #: Validation samples scored per block (100 s at 100 Hz).
 MAX_VAL_SAMPLES = 10000
 
@@ -207,34 +216,41 @@ def _identify_parser() -> argparse.ArgumentParser:
                         "Drift, delay and channel blocks are left out, with a note. The "
                         "record must be at the model's sample rate. --out is then an augmented "
                         "model file that ipmc track and model_server serve as an inverse model")
-    p.add_argument("--tune", choices=("abc", "none"), default="abc",
-                   help="lssvm-narx: tune C and sigma by ABC (default) or use --C/--sigma")
+    p.add_argument("--tune", choices=("abc", "none"), default=None,
+                   help="lssvm-narx: tune C and sigma by ABC (default for a forward model) or "
+                        "use --C/--sigma (default with --inverse)")
     p.add_argument("--budget", type=_budget, default=(DEFAULT_SOURCES, DEFAULT_CYCLES),
                    help=f"ABC budget SOURCESxCYCLES (default {DEFAULT_SOURCES}x{DEFAULT_CYCLES}"
                         ", about 210 fits; the paper's is 100x100, about 20000)")
     p.add_argument("--objective", choices=("free-run", "one-step"), default="free-run",
                    help="tuning objective: validation RMSE of the free run (default) or of the "
                         "one-step prediction")
-    p.add_argument("--C", type=float, default=PAPER_C, help=f"LSSVM C (default {PAPER_C})")
-    p.add_argument("--sigma", type=float, default=PAPER_SIGMA,
-                   help=f"LSSVM sigma, standardised units (default {PAPER_SIGMA})")
+    p.add_argument("--C", type=float, default=None,
+                   help=f"LSSVM C (default {PAPER_C}; with --inverse "
+                        f"{NARX_INVERSE_DEFAULTS['C']:g})")
+    p.add_argument("--sigma", type=float, default=None,
+                   help=f"LSSVM sigma, standardised units (default {PAPER_SIGMA}; with "
+                        f"--inverse {NARX_INVERSE_DEFAULTS['sigma']:g})")
     p.add_argument("--input-lags", type=int, default=None,
                    help=f"m: input lags; with --inverse, past voltages (default {DEFAULT_LAGS}"
-                        f", with --inverse {DEFAULT_INVERSE_INPUT_LAGS}: no voltage feedback, "
-                        "so the inverse free run cannot drift; the paper's is 3)")
+                        f", with --inverse {NARX_INVERSE_DEFAULTS['input_lags']}: no voltage "
+                        "feedback, so the inverse free run cannot drift; the paper's is 3)")
     p.add_argument("--output-lags", type=int, default=None,
-                   help=f"n (default {DEFAULT_LAGS}, with --input-memory-taus "
+                   help=f"n (default {DEFAULT_LAGS}, with --inverse "
+                        f"{NARX_INVERSE_DEFAULTS['output_lags']}, with --input-memory-taus "
                         f"{DEFAULT_CHANNEL_LAGS}; the paper's is 3)")
     p.add_argument("--lag-step", type=_lag_step, default=None,
                    help="spacing of the lags in samples: an integer, a comma list to search "
                         "(e.g. 5,10,20) or 'auto' (searches "
                         f"{','.join(map(str, DEFAULT_LAG_STEPS))}; needs --tune abc). Default: "
-                        "auto with --tune abc, 1 with --tune none")
-    p.add_argument("--memory-taus", type=_memory_taus, default=(), metavar="TAU[,TAU..]",
+                        "auto with --tune abc, 1 with --tune none, "
+                        f"{NARX_INVERSE_DEFAULTS['lag_step']} with --inverse")
+    p.add_argument("--memory-taus", type=_memory_taus, default=None, metavar="TAU[,TAU..]",
                    help="lssvm-narx --inverse: memory channels, the desired displacement "
                         "low-passed with these time constants (s, comma list, e.g. 1.0); they "
                         "let the inverse undo the IPMC's back-relaxation without a voltage "
-                        "recursion (default none: the paper's structure)")
+                        "recursion (default 1.0 with --inverse; none is the paper's "
+                        "structure)")
     add_input_memory_taus(
         p, "lssvm-narx forward: voltage channels, the voltage low-passed with these time "
            "constants (s, e.g. 0.3 0.5), built by the model from the raw voltage and stored in "
@@ -244,9 +260,10 @@ def _identify_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-raw-voltage", dest="raw_voltage", action="store_false",
                    help="with --input-memory-taus: the low-passed voltages only, not the "
                         "voltage itself (the structure that inverts smoothly)")
-    p.add_argument("--prototypes", type=int, default=DEFAULT_PROTOTYPES,
+    p.add_argument("--prototypes", type=int, default=None,
                    help=f"lssvm-narx: fixed-size prototypes above --max-exact rows (default "
-                        f"{DEFAULT_PROTOTYPES})")
+                        f"{DEFAULT_PROTOTYPES}, with --inverse "
+                        f"{NARX_INVERSE_DEFAULTS['prototypes']})")
     p.add_argument("--max-exact", type=int, default=DEFAULT_MAX_EXACT,
                    help=f"lssvm-narx: exact LSSVM up to this many rows (default "
                         f"{DEFAULT_MAX_EXACT})")
@@ -346,8 +363,17 @@ def _check_gpi_args(args) -> None:
                          "lssvm-narx; the GPI model has its relaxation bank built in")
 
 
+def _narx_defaults(args) -> None:
+    """Fill the lssvm-narx options not given: :data:`NARX_INVERSE_DEFAULTS` for an inverse
+    model, else :data:`NARX_DEFAULTS`."""
+    for key, value in (NARX_INVERSE_DEFAULTS if args.inverse else NARX_DEFAULTS).items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+
+
 def _identify_narx(args, rec, u, y, meta: dict):
     """The paper's LSSVM-NARX, forward or inverse, tuned by ABC or with --C/--sigma."""
+    _narx_defaults(args)
     tune = args.tune == "abc"
     if args.memory_taus and not args.inverse:
         raise ValueError("--memory-taus is for an inverse model: add --inverse")
@@ -407,6 +433,7 @@ def _identify_channel_model(args, u, y, dt_s: float, meta: dict) -> NarxModel:
                          "channels are --memory-taus (the desired displacement low-passed)")
     if args.memory_taus:
         raise ValueError("--memory-taus is for an inverse model: add --inverse")
+    _narx_defaults(args)
     tune = args.tune == "abc"
     lag_step = 1 if args.lag_step is None else args.lag_step
     if not tune and not isinstance(lag_step, int):

@@ -36,7 +36,8 @@ def test_identify_and_evaluate_lssvm_narx(tmp_path, csvs, capsys):
                         "--plots", str(plots)])
     assert rc == 0
     doc = json.loads(out_json.read_text())
-    assert set(doc) == {"free_run", "one_step", "units", "samples_skipped"}
+    assert set(doc) == {"free_run", "one_step", "units", "samples_skipped",
+                        "unlike_identification"}
     for mode in ("free_run", "one_step"):
         assert set(doc[mode]) == {"rmse", "nrmse", "fit_percent", "max_abs"}
     assert doc["units"] == "mm" and doc["samples_skipped"] == 3
