@@ -3,9 +3,10 @@ default family) on data it was not designed on, every figure free run from the i
 
 Sections (each prints its table; ``--only NAME`` runs one):
 
-* ``rig``: the simulated IPMC, identified on one ``mixed`` record (600 s, seed 1), validated
-  on ``mixed`` records of seeds 2 and 3 and on the paper's three validation sets (as
-  ``make demo`` simulates them); the sensor's noise floor beside.
+* ``rig``: the simulated IPMC, identified on one ``mixed`` record (600 s, seed 1), and on a
+  random sine alone (240 s, as ``make demo``'s LSSVM-NARX), validated on ``mixed`` records of
+  seeds 2 and 3 and on the paper's three validation sets (as ``make demo`` simulates them);
+  the sensor's noise floor beside.
 * ``duhem``: a plant of another structure (``ipmc_model/test/duhem_plant.py``: Duhem
   hysteresis, two relaxations, polynomial asymmetry, 40 ms delay), seeds 11-13, beside a
   linear ARX(6, 6). Never used to choose the structure.
@@ -13,6 +14,8 @@ Sections (each prints its table; ``--only NAME`` runs one):
   free run of the whole record scored on the second; fit % beside ARX(6, 6) and PI (NNLS).
 * ``boucwen``: the Bouc-Wen benchmark, identified on the training multisine, free run on the
   test multisine and sine sweep from zero state, RMSE in metres beside PNLSS's 1.87e-5.
+* ``periodic``: one sine identified (the default and ``--model lssvm-narx``), a random sine
+  validated, beside a linear ARX(6, 6): does the model collapse on another input?
 * ``time``: ``ipmc identify --data F --out M`` (the default comparison and the refit) on a
   60 000-sample record, wall time.
 
@@ -63,21 +66,24 @@ def _mixed_record(seed: int, seconds: float = 600.0):
 def rig() -> None:
     p = IpmcPlant().params
     floor = math.hypot(p["noise_std_mm"], p["resolution_mm"] / math.sqrt(12))
-    u, y = _mixed_record(1)
-    m = GeneralizedPI().fit(u, y)
-    print(f"rig: identified on mixed seed 1 (600 s) in {m.fit_seconds_:.1f} s; noise floor "
-          f"{floor:.4f} mm")
-    print(f"{'validation record':<24} {'free-run RMSE':>14} {'x floor':>8} {'paper':>8}")
-    for seed in (2, 3):
-        uv, yv = _mixed_record(seed)
-        e = _rmse(m.simulate(uv), yv)
-        print(f"{'mixed seed ' + str(seed):<24} {e:>11.4f} mm {e / floor:>8.1f} {'':>8}")
+    _, u_rs = make_input("random-sine", amplitude_v=3.0, frequency_hz=1.0, seconds=240.0,
+                         rate_hz=100.0, seed=1)
+    records = {"mixed seed 1, 600 s": _mixed_record(1),
+               "random sine 240 s (no holds)": (u_rs, IpmcPlant(seed=1).run(u_rs).y_mm)}
+    vals = {f"mixed seed {seed}": _mixed_record(seed) for seed in (2, 3)}
     for name, (kind, amp, f, sec, seed) in PAPER_SETS.items():
         _, uv = make_input(kind, amplitude_v=amp, frequency_hz=f, seconds=sec, rate_hz=100.0,
                            seed=seed)
-        yv = IpmcPlant(seed=seed).run(uv).y_mm
-        e = _rmse(m.simulate(uv), yv)
-        print(f"{name:<24} {e:>11.4f} mm {e / floor:>8.1f} {PAPER_RMSE_MM[name]:>8.3f}")
+        vals[name] = (uv, IpmcPlant(seed=seed).run(uv).y_mm)
+    for train, (u, y) in records.items():
+        m = GeneralizedPI().fit(u, y)
+        print(f"rig: identified on {train} in {m.fit_seconds_:.1f} s; noise floor "
+              f"{floor:.4f} mm")
+        print(f"{'validation record':<24} {'free-run RMSE':>14} {'x floor':>8} {'paper':>8}")
+        for name, (uv, yv) in vals.items():
+            e = _rmse(m.simulate(uv), yv)
+            paper = f"{PAPER_RMSE_MM[name]:>8.3f}" if name in PAPER_RMSE_MM else ""
+            print(f"{name:<24} {e:>11.4f} mm {e / floor:>8.1f} {paper}")
 
 
 def duhem() -> None:
@@ -131,6 +137,34 @@ def boucwen() -> None:
         print(f"{name[:-4]:<16} {e:>10.3g} {ea:>10.3g} {ref:>10}")
 
 
+def periodic() -> None:
+    """One periodic sine (2.5 V, 0.25 Hz, 120 s) identified, a random sine validated: the
+    default ``ipmc identify`` and the LSSVM-NARX it tunes when forced, beside ARX(6, 6)."""
+    from ipmc_driver.dataio import Record, save_csv
+    from ipmc_driver.signals import random_sine, sine
+    from ipmc_model.persistence import load_model
+
+    _, u = sine(2.5, 0.25, 120.0)
+    y = IpmcPlant(seed=8).run(u).y_mm
+    _, uv = random_sine(60.0, 100.0, 3.0, band_hz=(0.02, 0.8), seed=9)
+    yv = IpmcPlant(seed=9).run(uv).y_mm
+    print("periodic: identified on one sine (2.5 V, 0.25 Hz, 120 s), free run on a random sine")
+    with tempfile.TemporaryDirectory() as tmp:
+        csv = save_csv(Record(t_s=np.arange(u.size) / 100.0, u_v=u, y_mm=y),
+                       Path(tmp) / "sine.csv")
+        for label, extra in (("default (ipmc identify)", []),
+                             ("lssvm-narx (--model lssvm-narx)", ["--model", "lssvm-narx"])):
+            out = Path(tmp) / "m.json"
+            subprocess.run([sys.executable, "-m", "ipmc_driver.cli", "identify", "--data",
+                            str(csv), *extra, "--out", str(out)], check=True,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            m = load_model(out)
+            lag = int(getattr(m, "max_lag_", 0))
+            ys = m.simulate(uv, yv[:lag]) if lag else m.simulate(uv)
+            print(f"{label:<34} {_rmse(ys[lag:], yv[lag:]):.4f} mm")
+    print(f"{'ARX(6, 6)':<34} {_rmse(LinearArx(6, 6).fit(u, y).simulate(uv), yv):.4f} mm")
+
+
 def timing() -> None:
     u, y = _mixed_record(1)
     with tempfile.TemporaryDirectory() as tmp:
@@ -145,7 +179,8 @@ def timing() -> None:
               f"{time.perf_counter() - t0:.1f} s wall")
 
 
-SECTIONS = {"rig": rig, "duhem": duhem, "piezo": piezo, "boucwen": boucwen, "time": timing}
+SECTIONS = {"rig": rig, "duhem": duhem, "piezo": piezo, "boucwen": boucwen,
+            "periodic": periodic, "time": timing}
 
 
 def main() -> None:

@@ -37,6 +37,16 @@ def test_fit_finds_the_plants_ion_current_limit_and_charging(rig_model):
     assert rig_model.cv_.alpha in rig_model.alphas and len(rig_model.cv_.rmse) == 8
 
 
+def test_a_transport_delay_is_kept_only_where_the_free_run_cv_wants_it(rig_model):
+    assert rig_model.delay_samples_ == 0  # the simulated IPMC has none (a charging lag only)
+    assert len(rig_model.delay_scores_) == 2  # yet the linear part proposed one
+    from duhem_plant import duhem_plant  # 4 samples of delay before a hysteresis that acts
+    # at once: there the delay is the lag a charging stage cannot take up
+
+    _, u = mixed(120.0, 100.0, 3.0, (0.02, 0.8), seed=6)
+    assert GeneralizedPI().fit(u, duhem_plant(u, 6)).delay_samples_ == 4
+
+
 def test_free_run_on_another_input_is_near_the_noise_floor(rig_model):
     _, u = random_sine(60.0, 100.0, 3.0, band_hz=(0.02, 0.8), seed=2)
     y = IpmcPlant(seed=2).run(u).y_mm
