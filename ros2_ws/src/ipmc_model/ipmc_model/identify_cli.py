@@ -192,7 +192,7 @@ def _identify_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="ipmc identify",
         description="Identify an actuator model from a record. With no --model it tries the "
-                    "families (" + ", ".join(FAMILIES) + ") fitted on the first 70 %% of the "
+                    "families (" + ", ".join(FAMILIES) + ") fitted on the first 70 % of the "
                     "record, picks the lowest held-out free-run RMSE on the rest, refits it on "
                     "the whole record and stores the table in the model file.",
     )
@@ -216,6 +216,18 @@ def _identify_parser() -> argparse.ArgumentParser:
                         "Drift, delay and channel blocks are left out, with a note. The "
                         "record must be at the model's sample rate. --out is then an augmented "
                         "model file that ipmc track and model_server serve as an inverse model")
+    _add_narx_options(p)
+    p.add_argument("--pi-method", choices=("nnls", "pso"), default="nnls",
+                   help="pi: thresholds on a grid + NNLS (default, invertible) or PSO (paper)")
+    p.add_argument("--operators", type=int, default=10, help="pi: number of play operators")
+    p.add_argument("--seed", type=int, default=0)
+    return p
+
+
+
+def _add_narx_options(p: argparse.ArgumentParser) -> None:
+    """The lssvm-narx options of ``ipmc identify`` (unset ones: :data:`NARX_DEFAULTS`, or
+    :data:`NARX_INVERSE_DEFAULTS` with --inverse)."""
     p.add_argument("--tune", choices=("abc", "none"), default=None,
                    help="lssvm-narx: tune C and sigma by ABC (default for a forward model) or "
                         "use --C/--sigma (default with --inverse)")
@@ -275,11 +287,6 @@ def _identify_parser() -> argparse.ArgumentParser:
                    help="tuning validation: 1 = the last 30 %% of the record; K >= 2 = blocked "
                         f"K-fold cross-validation (K times the fits, less noisy; default "
                         f"{DEFAULT_FOLDS})")
-    p.add_argument("--pi-method", choices=("nnls", "pso"), default="nnls",
-                   help="pi: thresholds on a grid + NNLS (default, invertible) or PSO (paper)")
-    p.add_argument("--operators", type=int, default=10, help="pi: number of play operators")
-    p.add_argument("--seed", type=int, default=0)
-    return p
 
 
 def identify_main(argv: list[str] | None = None) -> int:
