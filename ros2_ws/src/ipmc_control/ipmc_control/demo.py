@@ -51,8 +51,7 @@ INVERSE = ["--model", "lssvm-narx", "--inverse"]
 # hold large voltages long, not only pass through them: the `mixed` input.
 TRAIN_FEEDFORWARD = ["--input", "mixed", "--amplitude", "3", "--frequency", "0.8",
                      "--seconds", "600", "--seed", "1"]
-FEEDFORWARD = ["--model", "lssvm-narx", "--tune", "none", "--C", "1e6", "--sigma", "1",
-               "--prototypes", "800", "--input-memory-taus", "0.3", "0.5", "--no-raw-voltage"]
+FEEDFORWARD = ["--model", "lssvm-narx", "--input-memory-taus", "0.3", "0.5", "--no-raw-voltage"]
 # Rig data with an effect nobody declares to the diagnosis: steps and holds show creep.
 CREEP_DATA = ["--input", "steps", "--amplitude", "2.5", "--seconds", "300", "--seed", "5",
               "--effect", "creep"]

@@ -292,3 +292,21 @@ def test_identify_effects_from_refuses_what_gives_no_feedforward(tmp_path, csvs,
     err = capsys.readouterr().err
     assert message in err
     assert not (tmp_path / "ff.json").exists()
+
+
+@pytest.mark.parametrize(("extra", "expected"), [
+    (["--inverse"], {"C": 1e4, "sigma": 2.0, "input_lags": 0, "output_lags": 10,
+                     "lag_step": 2, "memory_taus_s": (1.0,)}),
+    (["--input-memory-taus", "0.3", "0.5", "--no-raw-voltage"], {"C": 1e6, "sigma": 1.0}),
+])
+def test_lssvm_narx_options_not_given_are_the_documented_recipe(tmp_path, csvs, capsys, extra,
+                                                                 expected):
+    train, _ = csvs
+    out = tmp_path / "m.json"
+    assert identify_main(["--data", str(train), "--model", "lssvm-narx", *extra,
+                          "--out", str(out)]) == 0
+    assert "ABC" not in capsys.readouterr().err  # no tuning: the recipe's C and sigma
+    m = load_model(out)
+    assert m.regressor_.C == expected.pop("C") and m.regressor_.sigma == expected.pop("sigma")
+    for key, value in expected.items():
+        assert getattr(m, key) == value
