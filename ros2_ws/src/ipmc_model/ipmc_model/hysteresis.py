@@ -27,7 +27,7 @@ output the model simulates from the record's input alone).
 
 :class:`GpiInverse` is its numerical inverse: at each sample the voltage whose model output
 equals the desired displacement, found on the monotone scalar map u_k -> y_k (grid search
-then bisection), from the model's own state; so it is exact to the model wherever the
+then bracket refinement), from the model's own state; so it is exact to the model wherever the
 actuator's limits allow.
 """
 
@@ -141,7 +141,8 @@ def estimate_delay(u: np.ndarray, y: np.ndarray, dt_s: float, taus_s, max_sample
     for d in range(max(0, int(max_samples)) + 1):
         ud = delayed(u, d)
         X = np.column_stack([ud, lowpass_bank(ud, taus_s, dt_s)[0], np.ones(u.size)])
-        sse = float(np.linalg.lstsq(X, y, rcond=None)[1].sum())
+        coef = np.linalg.lstsq(X, y, rcond=None)[0]
+        sse = float(np.sum((X @ coef - y) ** 2))  # lstsq gives no residual when rank-deficient
         if sse < best_sse:
             best, best_sse = d, sse
     return best
@@ -448,11 +449,12 @@ class GeneralizedPI:
 
     @property
     def history_samples(self) -> int:
-        """Past samples a stepper going on from a history needs: five of its slowest time
-        constants (its states then within 0.7 % of those of an uninterrupted run)."""
+        """Past samples a stepper going on from a history needs: the delay and five of its
+        slowest time constants (its relaxations then within 0.7 % of those of an uninterrupted
+        run; the plays keep what the history shows of their reversal points)."""
         check_fitted(self, "weights_")
         slow = max(self.memory_taus_s_ + (self.charge_tau_s_,))
-        return max(1, math.ceil(5.0 * slow / self.dt_s))
+        return max(1, math.ceil(5.0 * slow / self.dt_s)) + int(self.delay_samples_)
 
     def stepper(self, u_history=None) -> GpiStepper:
         """Sample-by-sample model, going on from ``u_history`` (V, oldest first) or from rest."""
@@ -542,7 +544,7 @@ class GpiStepper:
         return self.advance(x)
 
 
-#: Voltage grid of the inverse's search per sample, then bisection rounds on the bracket.
+#: Voltage grid of the inverse's search per sample, then refinement rounds (9 points each).
 INVERSE_GRID_POINTS = 49
 INVERSE_REFINE_ROUNDS = 3
 
@@ -628,8 +630,9 @@ class GpiInverseStepper:
     def record_applied(self, u_applied_v: float) -> None:
         """Advance the model's state by the applied voltage instead of the returned one."""
         if self._before is not None:
+            # the applied voltage reaches the charge after the transport delay, as in reset()
             self._fwd.state = self._before
-            self._fwd.advance(float(u_applied_v))
+            self._fwd.step(float(u_applied_v))
 
 
 def _bracket(err: np.ndarray) -> tuple[int, int]:

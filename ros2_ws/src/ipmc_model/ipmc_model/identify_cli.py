@@ -333,6 +333,7 @@ def _identify(args, rec, u, y, meta: dict):
     if args.model is None and args.inverse:
         args.model = "gpi"
     if args.model is None:
+        _check_no_family_options(args)
         print(f"comparing {', '.join(FAMILIES)} on held-out free run (fit on the first 70 %)",
               file=sys.stderr, flush=True)
         sel = compare_families(u, y, dt_s, progress=_stage)
@@ -362,6 +363,24 @@ def _identify(args, rec, u, y, meta: dict):
     if args.input_memory_taus is not None or not args.raw_voltage:
         return _identify_channel_model(args, u, y, dt_s, meta)
     return _identify_narx(args, rec, u, y, meta)
+
+
+#: Options that belong to one family: refused without --model, not ignored.
+FAMILY_OPTIONS = {"--tune": "tune", "--C": "C", "--sigma": "sigma", "--input-lags": "input_lags",
+                  "--output-lags": "output_lags", "--lag-step": "lag_step",
+                  "--memory-taus": "memory_taus", "--input-memory-taus": "input_memory_taus",
+                  "--prototypes": "prototypes"}
+
+
+def _check_no_family_options(args) -> None:
+    """Without --model the comparison fits each family with its defaults."""
+    given = [flag for flag, key in FAMILY_OPTIONS.items() if getattr(args, key) is not None]
+    given += ["--no-raw-voltage"] * (not args.raw_voltage)
+    given += ["--operators"] * (args.operators != 10)
+    given += ["--pi-method"] * (args.pi_method != "nnls")
+    if given:
+        raise ValueError(f"{', '.join(given)} belong to one model family; name it with "
+                         "--model (without --model every family is fitted with its defaults)")
 
 
 def _stage(text: str) -> None:
@@ -516,11 +535,11 @@ def evaluate_main(argv: list[str] | None = None) -> int:
         rec = _load(args.data)
         model = load_any_model(args.model, rec.dt_s)
         result = evaluate_model(model, rec.u_v, rec.y_mm)
-    except ValueError as exc:
+        notes = unlike_identification(getattr(model, "metadata_", {}) or {}, rec.u_v,
+                                      float(rec.rate_hz))
+    except (ValueError, TypeError) as exc:  # TypeError: a hand-edited metadata value
         print(f"ipmc evaluate: error: {exc}", file=sys.stderr)
         return 1
-    notes = unlike_identification(getattr(model, "metadata_", {}) or {}, rec.u_v,
-                                  float(rec.rate_hz))
     for why in notes:
         print(f"note: this record is unlike the identification record: {why}",
               file=sys.stderr)

@@ -172,12 +172,17 @@ def _build_gpi(body: dict, arrays: dict):
     cv = body["cv"]
     m.cv_ = CvResult(tuple(cv["alphas"]), tuple(cv["rmse"]), float(cv["alpha"]),
                      int(cv["n_folds"]))
+    if m.thresholds_.ndim != 2 or m.knots_.ndim != 1 or m.weights_.ndim != 1:
+        raise ValueError("the GPI arrays have the wrong dimensions")
     p = m.feature_mean_.size
-    n_play = m.thresholds_.shape[0]
-    if (m.weights_.size != p + 1 or m.map_coef_.size != m.knots_.size + 1
-            or p != 1 + len(m.memory_taus_s_) + m.thresholds_.size or m.thresholds_.ndim != 2
-            or n_play > 1 + len(m.memory_taus_s_)):
+    if (m.weights_.size != p + 1 or m.feature_scale_.size != p
+            or m.map_coef_.size != m.knots_.size + 1
+            or p != 1 + len(m.memory_taus_s_) + m.thresholds_.size
+            or m.thresholds_.shape[0] > 1 + len(m.memory_taus_s_)):
         raise ValueError("the GPI arrays do not match its channels")
+    if not (m.dt_s > 0 and m.delay_samples_ >= 0 and m.charge_tau_s_ >= 0
+            and m.slew_v_per_s_ > 0 and all(t > 0 for t in m.memory_taus_s_)):
+        raise ValueError("a GPI time constant, rate limit or delay is out of range")
     return GpiInverse(m, float(body["u_max_v"])) if "u_max_v" in body else m
 
 

@@ -161,6 +161,8 @@ def test_identify_refuses_bad_input_in_one_sentence(tmp_path, capsys):
     assert identify_main(["--data", data, "--model", "gpi", "--memory-taus", "1",
                           "--out", str(out)]) == 1
     assert "lssvm-narx" in capsys.readouterr().err and not out.exists()
+    assert identify_main(["--data", data, "--C", "10", "--out", str(out)]) == 1
+    assert "--C belong to one model family" in capsys.readouterr().err and not out.exists()
 
 
 def test_gpi_inverse_tracks_a_sine_in_the_hybrid_loop(rig_model):
@@ -187,3 +189,21 @@ def test_evaluate_says_when_a_record_is_unlike_the_identification_record(tmp_pat
     err = capsys.readouterr().err
     assert "beyond the identified -2 .. 2 V" in err and "another kind" in err
     assert len(json.loads(js.read_text())["unlike_identification"]) == 2
+
+
+def test_inverse_with_a_delay_goes_on_from_a_history_as_from_its_own_steps():
+    from duhem_plant import duhem_plant
+
+    _, u = mixed(90.0, 100.0, 3.0, (0.02, 0.8), seed=7)
+    model = GeneralizedPI().fit(u, duhem_plant(u, 7))
+    assert model.delay_samples_ > 0
+    _, y_ref = sine(1.0, 0.2, 6.0)
+    inv = model.inverse()
+    a = inv.stepper()
+    applied = []
+    for r in y_ref[:300]:
+        applied.append(a.step(r))
+        a.record_applied(applied[-1])
+    b = inv.stepper(u_history=applied)
+    np.testing.assert_allclose([a.step(r) for r in y_ref[300:320]],
+                               [b.step(r) for r in y_ref[300:320]], atol=1e-6)
