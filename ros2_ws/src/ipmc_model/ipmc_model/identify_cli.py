@@ -54,9 +54,11 @@ DEFAULT_CHANNEL_LAGS = 0
 #: the paper; inverse (--inverse), the recipe of docs/control.md (no past voltages, 10
 #: displacement lags 20 ms apart, a memory channel at 1 s: the back-relaxation's inverse), which
 #: tracks better in hybrid than the ABC-tuned inverse (docs/control.md).
-NARX_DEFAULTS = {"tune": "abc", "C": PAPER_C, "sigma": PAPER_SIGMA,
+NARX_DEFAULTS = {"tune": "abc", "C": PAPER_C, "sigma": PAPER_SIGMA, "input_lags": DEFAULT_LAGS,
+                 "output_lags": DEFAULT_LAGS,
                  "prototypes": DEFAULT_PROTOTYPES, "memory_taus": ()}
-NARX_INVERSE_DEFAULTS = {"tune": "none", "C": 1e4, "sigma": 2.0, "input_lags": 0,
+NARX_INVERSE_DEFAULTS = {"tune": "none", "C": 1e4, "sigma": 2.0,
+                         "input_lags": DEFAULT_INVERSE_INPUT_LAGS,
                          "output_lags": 10, "lag_step": 2, "prototypes": 800,
                          "memory_taus": (1.0,)}
 #: A forward model on voltage channels (--input-memory-taus): C and sigma of docs/control.md,
@@ -413,10 +415,6 @@ def _identify_narx(args, rec, u, y, meta: dict):
     fit_u, fit_y, augmented = u, y, None
     if args.effects_from:
         augmented, fit_u, fit_y = _feedforward_space(args, u, y, rec.dt_s, meta)
-    if args.input_lags is None:
-        args.input_lags = DEFAULT_INVERSE_INPUT_LAGS if args.inverse else DEFAULT_LAGS
-    if args.output_lags is None:
-        args.output_lags = DEFAULT_LAGS
     if args.lag_step is None:
         args.lag_step = "auto" if tune else 1
     if tune:
