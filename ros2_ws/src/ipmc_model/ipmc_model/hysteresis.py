@@ -4,7 +4,9 @@ whose free run cannot diverge, for IPMC and piezo actuators.
 The voltage u (V) passes through four stages, each an actuator mechanism:
 
 0. **A transport delay** of whole samples (drive electronics, a bus): the one the linear part
-   prefers over 0 .. ``max_delay_s`` is fitted beside none, and the free-run CV keeps one.
+   prefers over 0 .. ``max_delay_s`` is fitted beside none, and the free-run CV keeps one
+   (``delay_s`` fixes it). An optional **dead zone** ``dead_zone_v`` comes before it (voltages
+   below it move no ions: a contact or electrode threshold).
 1. **Ion-current-limited charging** (the double layer of an IPMC, a piezo's amplifier):
    ``v_k = v_{k-1} + dt S tanh((u_k - v_{k-1}) / (tau S))``, a first-order lag of time constant
    ``tau`` whose rate saturates at ``S`` V/s. Two parameters, fitted.
@@ -17,6 +19,13 @@ The voltage u (V) passes through four stages, each an actuator mechanism:
 4. **An output map** ``y = g(z)``, ``z = w . phi`` the weighted sum of the channels and plays;
    ``g`` is piecewise linear (hinges at quantiles of z): the asymmetric, saturating bending
    of the generalised PI (Al Janaideh, Rakheja & Su).
+
+Optional channels beside the plays: the charging current ``dv/dt`` (``rate_channel``: bending
+that follows the migrating ions, not their charge) and the time since the start ``t``, ``t v``
+(``drift``: an offset and a gain that change over the record, as an IPMC dehydrates). After the
+map an optional output stage scales the negative side (``negative_gain_``) and softly limits
+the tip (``limit_mm_``); the fit leaves both neutral, the residual diagnosis fits them around a
+model of another day (an electrode face that cracked, a stop the tip meets).
 
 Every parameter but ``tau``, ``S`` enters linearly or bilinearly, and there is no output
 feedback: the free run is the one-step prediction, bounded for any bounded input. The joint
@@ -148,13 +157,22 @@ def estimate_delay(u: np.ndarray, y: np.ndarray, dt_s: float, taus_s, max_sample
     return best
 
 
+def dead_zone(u: np.ndarray, width_v: float) -> np.ndarray:
+    """``u`` with magnitudes below ``width_v`` removed: sign(u) max(|u| - w, 0)."""
+    if width_v <= 0:
+        return u
+    return np.sign(u) * np.maximum(np.abs(u) - width_v, 0.0)
+
+
 @dataclass(frozen=True)
 class GpiState:
-    """The model's state after a sample: charge v (V), relaxations (J,), plays (C, M)."""
+    """The model's state after a sample: charge v (V), relaxations (J,), plays (C, M), and
+    the samples run so far (the drift channels' clock)."""
 
     v: float
     relax: np.ndarray
     plays: np.ndarray
+    k: int = 0
 
 
 @dataclass(frozen=True)
@@ -228,7 +246,8 @@ class GeneralizedPI:
                  threshold_shares=DEFAULT_THRESHOLD_SHARES, n_knots: int = 10,
                  rate_limit: bool = True, alphas=DEFAULT_ALPHAS, n_folds: int = 5,
                  row_step: int = 2, max_nfev: int = 25, max_delay_s: float = 0.3,
-                 dt_s: float = 0.01, progress=None):
+                 dt_s: float = 0.01, delay_s: float | None = None, dead_zone_v: float = 0.0,
+                 rate_channel: bool = False, drift: bool = False, progress=None):
         self.memory_taus_s = tuple(float(t) for t in memory_taus_s)
         self.play_channels = play_channels
         self.threshold_shares = tuple(float(s) for s in threshold_shares)
@@ -240,12 +259,17 @@ class GeneralizedPI:
         self.max_nfev = max_nfev
         self.max_delay_s = float(max_delay_s)
         self.dt_s = float(dt_s)
+        self.delay_s = None if delay_s is None else float(delay_s)
+        self.dead_zone_v = float(dead_zone_v)
+        self.rate_channel = bool(rate_channel)
+        self.drift = bool(drift)
         self.progress = progress
         self.weights_ = None
+        self.negative_gain_, self.limit_mm_ = 1.0, math.inf
 
     # -- features ----------------------------------------------------------------------------
     def _charge(self, u: np.ndarray, theta) -> np.ndarray:
-        u = delayed(u, self.delay_samples_)
+        u = delayed(dead_zone(u, self.dead_zone_v), self.delay_samples_)
         if not self.rate_limit:
             return u
         return rate_limited_charge(u, math.exp(theta[0]), math.exp(theta[1]), self.dt_s)
@@ -255,7 +279,33 @@ class GeneralizedPI:
         relax, _ = lowpass_bank(v, self.memory_taus_s_, self.dt_s)
         ch = np.column_stack([v, relax])
         plays, _ = play_bank(ch[:, :self.thresholds_.shape[0]], self.thresholds_)
-        return np.hstack([ch, plays])
+        return np.hstack([ch, plays, self._extra_channels(v, np.arange(v.size))])
+
+    def _extra_channels(self, v: np.ndarray, k: np.ndarray, v_prev=None) -> np.ndarray:
+        """The charging current and the drift clock, shape (N, 0..3), for charges ``v`` at
+        sample indices ``k``; ``v_prev``: each one's previous charge (None: ``v`` is a run
+        from rest)."""
+        cols = []
+        if self.rate_channel:
+            prev = np.concatenate([[0.0], v[:-1]]) if v_prev is None else v_prev
+            cols.append((v - prev) / self.dt_s)
+        if self.drift:
+            t = k * self.dt_s
+            cols += [t, t * v]
+        return np.column_stack(cols) if cols else np.zeros((v.size, 0))
+
+    @property
+    def n_extra_channels(self) -> int:
+        """Channels beside the charge, relaxations and plays."""
+        return int(self.rate_channel) + 2 * int(self.drift)
+
+    def output_stage(self, y: np.ndarray) -> np.ndarray:
+        """The map's output through the negative-side gain and the soft limit."""
+        if self.negative_gain_ != 1.0:
+            y = np.where(y < 0, self.negative_gain_ * y, y)
+        if math.isfinite(self.limit_mm_):
+            y = self.limit_mm_ * np.tanh(y / self.limit_mm_)
+        return y
 
     def _design(self, u: np.ndarray, theta) -> np.ndarray:
         F = (self._raw_features(u, theta) - self.feature_mean_) / self.feature_scale_
@@ -295,10 +345,15 @@ class GeneralizedPI:
                                    (n_play, 1))
         # a delay is a candidate when the linear part prefers one; the whole model's blocked
         # free-run CV decides (a charging lag also looks like a delay to a linear model)
-        d_lin = estimate_delay(u, y, self.dt_s, self.memory_taus_s_,
-                               int(round(self.max_delay_s / self.dt_s)))
+        if self.delay_s is None:
+            d_lin = estimate_delay(dead_zone(u, self.dead_zone_v), y, self.dt_s,
+                                   self.memory_taus_s_, int(round(self.max_delay_s / self.dt_s)))
+            delays = sorted({0, d_lin})
+        else:
+            delays = [int(round(self.delay_s / self.dt_s))]
+        self.negative_gain_, self.limit_mm_ = 1.0, math.inf
         fits = []
-        for d in sorted({0, d_lin}):
+        for d in delays:
             self.delay_samples_ = d
             x, cv = self._fit_at_delay(u, y, span_s)
             fits.append((min(cv.rmse), d, x, cv, self.feature_mean_, self.feature_scale_,
@@ -436,7 +491,7 @@ class GeneralizedPI:
         """Free-run output (mm), shape (N,), from input ``u`` (V), every state from rest."""
         check_fitted(self, "weights_")
         z = self._design(as_signal("u", u), self._theta) @ self.weights_
-        return hinge_basis(z, self.knots_) @ self.map_coef_
+        return self.output_stage(hinge_basis(z, self.knots_) @ self.map_coef_)
 
     def predict(self, u, y=None) -> np.ndarray:
         """One-step prediction; the model has no output feedback, so this equals simulate."""
@@ -472,7 +527,9 @@ class GeneralizedPI:
                 "threshold_shares": list(self.threshold_shares), "n_knots": self.n_knots,
                 "rate_limit": self.rate_limit, "alphas": list(self.alphas),
                 "n_folds": self.n_folds, "row_step": self.row_step,
-                "max_nfev": self.max_nfev, "max_delay_s": self.max_delay_s, "dt_s": self.dt_s}
+                "max_nfev": self.max_nfev, "max_delay_s": self.max_delay_s, "dt_s": self.dt_s,
+                "delay_s": self.delay_s, "dead_zone_v": self.dead_zone_v,
+                "rate_channel": self.rate_channel, "drift": self.drift}
 
 
 class GpiStepper:
@@ -497,13 +554,13 @@ class GpiStepper:
             self.state = GpiState(0.0, np.zeros(self._a.size), np.zeros(m.thresholds_.shape))
             return
         u = as_signal("u_history", u_history)
-        past = u.tolist()[-d:] if d else []
+        past = dead_zone(u, m.dead_zone_v).tolist()[-d:] if d else []
         self._queue = deque([0.0] * (d - len(past)) + past)
         v = m._charge(u, m._theta)
         relax, zf = lowpass_bank(v, m.memory_taus_s_, m.dt_s)
         ch = np.column_stack([v, relax])
         _, plays = play_bank(ch[:, :m.thresholds_.shape[0]], m.thresholds_)
-        self.state = GpiState(float(v[-1]), zf, plays)
+        self.state = GpiState(float(v[-1]), zf, plays, int(u.size))
 
     def _channels(self, x: np.ndarray):
         """Charge v (G,), relaxations (G, J), plays (G, C, M) after charge inputs ``x`` (G,)."""
@@ -520,9 +577,10 @@ class GpiStepper:
 
     def _output(self, v, relax, plays) -> np.ndarray:
         m = self._m
-        phi = np.column_stack([v, relax, plays.reshape(v.size, -1)])
+        extra = m._extra_channels(v, np.full(v.size, self.state.k), np.full(v.size, self.state.v))
+        phi = np.column_stack([v, relax, plays.reshape(v.size, -1), extra])
         z = ((phi - m.feature_mean_) / m.feature_scale_) @ m.weights_[:-1] + m.weights_[-1]
-        return hinge_basis(z, m.knots_) @ m.map_coef_
+        return m.output_stage(hinge_basis(z, m.knots_) @ m.map_coef_)
 
     def outputs(self, x_candidates) -> np.ndarray:
         """Model outputs (mm) for candidate charge inputs (V) of this sample; state unchanged."""
@@ -532,12 +590,12 @@ class GpiStepper:
         """One sample with ``x_v`` (V) reaching the charging stage; returns the output (mm)."""
         v, relax, plays = self._channels(np.array([float(x_v)]))
         y = float(self._output(v, relax, plays)[0])
-        self.state = GpiState(float(v[0]), relax[0], plays[0])
+        self.state = GpiState(float(v[0]), relax[0], plays[0], self.state.k + 1)
         return y
 
     def step(self, u_v: float) -> float:
         """Apply ``u_v`` (V) for one sample, through the delay; returns the output (mm)."""
-        x = float(u_v)
+        x = float(dead_zone(np.array([float(u_v)]), self._m.dead_zone_v)[0])
         if self._queue:
             self._queue.append(x)
             x = self._queue.popleft()
@@ -621,11 +679,13 @@ class GpiInverseStepper:
             if i == j:
                 break
             grid = np.linspace(lo, hi, 9)
-        u = lo if i == j or e_hi == e_lo else lo - e_lo * (hi - lo) / (e_hi - e_lo)
-        u = float(np.clip(u, -lim, lim))
+        x = lo if i == j or e_hi == e_lo else lo - e_lo * (hi - lo) / (e_hi - e_lo)
+        x = float(np.clip(x, -lim, lim))
         self._before = self._fwd.state
-        self._fwd.advance(u)
-        return u
+        self._fwd.advance(x)
+        # the voltage whose dead-zoned value is x (the dead zone's edge for x = 0)
+        w = self._inv.model.dead_zone_v
+        return float(np.clip(x + math.copysign(w, x) if x != 0.0 else 0.0, -lim, lim))
 
     def record_applied(self, u_applied_v: float) -> None:
         """Advance the model's state by the applied voltage instead of the returned one."""

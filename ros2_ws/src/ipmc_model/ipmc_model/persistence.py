@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import math
 import zipfile
 from pathlib import Path
 
@@ -153,6 +154,8 @@ def _gpi_doc(model) -> tuple[str, dict, dict]:
     body = {"params": m.get_params(), "memory_taus_s_": list(m.memory_taus_s_),
             "cv": m.cv_.as_dict()}
     body.update({k: float(getattr(m, k)) for k in GPI_SCALARS})
+    body["negative_gain_"] = float(m.negative_gain_)
+    body["limit_mm_"] = float(m.limit_mm_) if math.isfinite(m.limit_mm_) else None
     body["delay_samples_"] = int(m.delay_samples_)
     if inverse:
         body["u_max_v"] = model.u_max_v
@@ -167,6 +170,9 @@ def _build_gpi(body: dict, arrays: dict):
     for k in GPI_SCALARS:
         setattr(m, k, float(body[k]))
     m.delay_samples_ = int(body["delay_samples_"])
+    m.negative_gain_ = float(body.get("negative_gain_", 1.0))
+    limit = body.get("limit_mm_")
+    m.limit_mm_ = math.inf if limit is None else float(limit)
     for k in GPI_ARRAYS:
         setattr(m, k, np.asarray(arrays[k], dtype=float))
     cv = body["cv"]
@@ -177,11 +183,12 @@ def _build_gpi(body: dict, arrays: dict):
     p = m.feature_mean_.size
     if (m.weights_.size != p + 1 or m.feature_scale_.size != p
             or m.map_coef_.size != m.knots_.size + 1
-            or p != 1 + len(m.memory_taus_s_) + m.thresholds_.size
+            or p != 1 + len(m.memory_taus_s_) + m.thresholds_.size + m.n_extra_channels
             or m.thresholds_.shape[0] > 1 + len(m.memory_taus_s_)):
         raise ValueError("the GPI arrays do not match its channels")
     if not (m.dt_s > 0 and m.delay_samples_ >= 0 and m.charge_tau_s_ >= 0
-            and m.slew_v_per_s_ > 0 and all(t > 0 for t in m.memory_taus_s_)):
+            and m.slew_v_per_s_ > 0 and all(t > 0 for t in m.memory_taus_s_)
+            and m.negative_gain_ > 0 and m.limit_mm_ > 0 and m.dead_zone_v >= 0):
         raise ValueError("a GPI time constant, rate limit or delay is out of range")
     return GpiInverse(m, float(body["u_max_v"])) if "u_max_v" in body else m
 
