@@ -211,53 +211,46 @@ class Demo:
             f"{s['rmse_after_mm']:.4f} mm after. Report: `diagnose/report.md`.", ""]
         if "creep" in s["effects_found"]:
             self.creep_feedforward(data, s["model_after"])
-        try:
-            from ipmc_model.diagnose import creep_hold_experiment
-        except ImportError:
-            self.summary += ["(The creep-compensated hold is not available in this build.)", ""]
-            return
-        self.summary += ["The same holds from another record of the rig (its own record of "
-                         "steps and its own diagnosis, in Python: "
-                         "`ipmc_model.diagnose.creep_hold_experiment`), hybrid control, before "
-                         "(plain inverse) and after (creep-augmented inverse from the "
-                         "diagnosis), with the fitted creep's 95 % interval:", "",
-                         "| hold | creep found (fitted) | RMSE before (mm) | RMSE after (mm) | "
-                         "after t >= 2 s, before / after (mm) | inverse alone, before / after "
-                         "(mm) | paper (rig) |",
-                         "|---|---|---|---|---|---|---|"]
+        from ipmc_control.creep_hold import PAPER_CONSTANT_RMSE_MM, creep_hold_experiment
+
+        self.summary += ["The same holds from another record of the rig (300 s of 2.5 V steps, "
+                         "its own diagnosis: `ipmc_control.creep_hold.creep_hold_experiment`), "
+                         "feedforward of the model before and after the diagnosis (both "
+                         "refitted on the whole record):", "",
+                         "| hold | creep found | hybrid before / after (mm) | after t >= 2 s, "
+                         "before / after (mm) | inverse alone, before / after (mm) | paper "
+                         "(rig) |", "|---|---|---|---|---|---|"]
         for ref, label in (("constant", "-4 mm (at the 3 V limit)"),
                            ("constant-reachable", "-3 mm")):
             h = creep_hold_experiment(identify_s=120.0 if self.quick else 300.0, reference=ref,
                                       progress=lambda msg: print(msg, flush=True))
-            after = "n/a" if h["rmse_after_mm"] is None else f"{h['rmse_after_mm']:.4f}"
-            s_after = ("n/a" if h["settled_rmse_after_mm"] is None
-                       else f"{h['settled_rmse_after_mm']:.4f}")
-            fitted = h["creep_fitted"]
-            span = h["creep_intervals"]
-            tau_span = (f" (95 %: {span['tau_s'][0]:.1f}-{span['tau_s'][1]:.1f} s)"
-                        if span else "")
-            found = ("no" if fitted is None else
-                     f"tau {fitted['tau_s']:.1f} s{tau_span}, "
-                     f"{fitted['gain_mm_per_v']:+.3f} mm/V")
-            o_after = ("n/a" if h["inverse_only_rmse_after_mm"] is None
-                       else f"{h['inverse_only_rmse_after_mm']:.4f}")
+            a = h.after
+            found = "no" if h.creep_params is None else ", ".join(
+                f"{t:g} s: {g:+.3f} mm/V" for t, g in zip(h.creep_params["taus_s"],
+                                                           h.creep_params["gains_mm_per_v"],
+                                                           strict=True))
             self.summary.append(
-                f"| {label} | {found} | {h['rmse_before_mm']:.4f} | {after} | "
-                f"{h['settled_rmse_before_mm']:.4f} / {s_after} | "
-                f"{h['inverse_only_rmse_before_mm']:.4f} / {o_after} | 0.8756 |")
+                f"| {label} | {found} | {h.before.hybrid_mm:.4f} / "
+                f"{'n/a' if a is None else f'{a.hybrid_mm:.4f}'} | "
+                f"{h.before.hybrid_settled_mm:.4f} / "
+                f"{'n/a' if a is None else f'{a.hybrid_settled_mm:.4f}'} | "
+                f"{h.before.inverse_only_mm:.4f} / "
+                f"{'n/a' if a is None else f'{a.inverse_only_mm:.4f}'} | "
+                f"{PAPER_CONSTANT_RMSE_MM} |")
         self.summary.append("")
 
     def creep_feedforward(self, data: str, model_after: str) -> None:
         """Back into control by the commands a lab runs: the diagnosis's model as feedforward."""
         ff = {"plain": self.path("models", "rig_inverse.json"),
               "creep": self.path("models", "rig_inverse_creep.json")}
-        self.ipmc("identify", "--data", data, *INVERSE, "--out", ff["plain"])
-        self.ipmc("identify", "--data", data, *INVERSE, "--effects-from", model_after,
+        self.ipmc("identify", "--data", data, "--inverse", "--out", ff["plain"])
+        self.ipmc("identify", "--data", data, "--inverse", "--effects-from", model_after,
                   "--out", ff["creep"])
-        self.summary += ["Back into control by the commands a lab runs: `ipmc identify` of the "
-                         "demo's inverse on `data/rig_creep.csv`, plain and with "
-                         "`--effects-from diagnose/model_after.json` (the creep undone around "
-                         "the inverse: `models/rig_inverse_creep.json`), then `ipmc track "
+        self.summary += ["Back into control by the commands a lab runs: `ipmc identify "
+                         "--inverse` on `data/rig_creep.csv`, plain and with "
+                         "`--effects-from diagnose/model_after.json` (the diagnosis's model, "
+                         "creep included, refitted and inverted: "
+                         "`models/rig_inverse_creep.json`), then `ipmc track "
                          "--plant-effect creep` (60 s holds, RMSE in mm, every sample counts):",
                          "", "| hold | mode | plain inverse | creep undone |", "|---|---|---|---|"]
         for ref, label in (("constant-reachable", "-3 mm"),

@@ -1,9 +1,9 @@
-"""``ipmc diagnose``: residual -> missing physical effect -> augmented model, before and after.
+"""``ipmc diagnose``: residual -> missing physical effect -> model with it, before and after.
 
-``ipmc diagnose --data FILE.csv|BAG [--model MODEL] --report DIR [--seed N] [--committee]``
+``ipmc diagnose --data FILE.csv|BAG [--model MODEL] --report DIR [--effects NAME ...]``
 
-Writes ``summary.json``, ``report.md``, figures and the model files before/after to DIR;
-progress goes to stderr. See :mod:`ipmc_model.diagnose` for the procedure.
+Writes ``summary.json``, ``report.md``, ``residual.png`` and the model files before and after
+to DIR; progress goes to stderr. See :mod:`ipmc_model.diagnosis` for the procedure.
 """
 
 from __future__ import annotations
@@ -11,37 +11,33 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .diagnose import diagnose, print_progress, write_report
-from .effects import check_rate, load_augmented
-from .identify_cli import add_input_memory_taus, taus_list
+from .diagnosis import CANDIDATES, diagnose
+from .diagnosis.report import check_report_dir, write_report
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="ipmc diagnose",
-        description="Fit a baseline model, analyse its held-out residual, add the physical "
-                    "effect it lacks (creep, drift, delay, ...), report before/after.")
+        description="Fit a model on the first 70 %% of a record, find the physical effects it "
+                    "lacks (creep, drift, delay, dead zone, ...) by their held-out free-run "
+                    "gain, and report the error before and after.")
     p.add_argument("--data", required=True, help="t,u,y CSV file (s, V, mm) or rosbag2 folder")
-    p.add_argument("--model", help="baseline model file (lssvm-narx from ipmc identify, or a "
-                                   "diagnosis's model_before/after), e.g. fitted on another "
-                                   "day: kept as it is, and drift, delay, dead zone, asymmetry "
-                                   "and saturation are fitted around it (what changed since); "
-                                   "identify it on the same kind of input (a model of another "
-                                   "kind gets its blocks undecided, not accepted); default: "
-                                   "identify one on the first 70 %% of the data")
-    p.add_argument("--report", required=True, metavar="DIR", help="output directory")
-    p.add_argument("--seed", type=int, default=0, help="seed of tuning and prototypes")
-    add_input_memory_taus(
-        p, "memory channels for the baseline identified here: the voltage low-passed with "
-           "these time constants (s, e.g. 1 3), each one more input channel; they carry the "
-           "back-relaxation beyond the baseline's 1.2 s lag window (docs/diagnose.md, "
-           "'Memory channels'); default none; not with --model")
-    p.add_argument("--committee", action="store_true",
-                   help="identify the baseline as the mean of three LSSVM-NARX with 1.2, 1.8 "
-                        "and 2.4 s input windows (each tuned on its own): less error on new "
-                        "input than one model, about three times the cost (docs/diagnose.md, "
-                        "session 32); not with --model or --input-memory-taus")
+    p.add_argument("--model", help="a GPI model file (ipmc identify's default, or a diagnosis's "
+                                   "model_after.json), e.g. from another day: kept as it is, "
+                                   "and each effect's block is fitted around it (what changed "
+                                   "since); default: the diagnosis's own core model, fitted on "
+                                   "the first 70 %% of the data")
+    p.add_argument("--report", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--effects", nargs="+", metavar="NAME", choices=list(CANDIDATES),
+                   help=f"candidate effects to try (default all: {', '.join(CANDIDATES)})")
+    p.add_argument("--seed", type=int, default=0,
+                   help="accepted for scripts written for earlier versions; the diagnosis is "
+                        "deterministic")
     return p
+
+
+def _progress(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -50,14 +46,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         from ipmc_driver.dataio import load_record
 
+        from .effects import load_any_model
+
+        check_report_dir(args.report)
+        model = load_any_model(args.model) if args.model else None
         rec = load_record(args.data)
-        print_progress(f"{args.data}: {len(rec)} samples at {rec.rate_hz:.4g} Hz")
-        model = None
-        if args.model:
-            model = check_rate(load_augmented(args.model, dt_s=rec.dt_s), rec.dt_s)
-        d = diagnose(rec.t_s, rec.u_v, rec.y_mm, model=model, seed=args.seed,
-                     memory_taus_s=taus_list(args.input_memory_taus),
-                     committee=args.committee, progress=print_progress)
+        _progress(f"{args.data}: {len(rec)} samples at {rec.rate_hz:.4g} Hz")
+        d = diagnose(rec.t_s, rec.u_v, rec.y_mm, model=model, candidates=args.effects,
+                     progress=_progress)
         summary = write_report(d, args.report, data_label=str(args.data))
     except ValueError as exc:  # DataError, ModelFileError and bad inputs are ValueErrors
         print(f"ipmc diagnose: error: {exc}", file=sys.stderr)

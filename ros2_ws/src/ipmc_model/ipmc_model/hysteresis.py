@@ -20,12 +20,12 @@ The voltage u (V) passes through four stages, each an actuator mechanism:
    ``g`` is piecewise linear (hinges at quantiles of z): the asymmetric, saturating bending
    of the generalised PI (Al Janaideh, Rakheja & Su).
 
-Optional channels beside the plays: the charging current ``dv/dt`` (``rate_channel``: bending
-that follows the migrating ions, not their charge) and the time since the start ``t``, ``t v``
-(``drift``: an offset and a gain that change over the record, as an IPMC dehydrates). After the
-map an optional output stage scales the negative side (``negative_gain_``) and softly limits
-the tip (``limit_mm_``); the fit leaves both neutral, the residual diagnosis fits them around a
-model of another day (an electrode face that cracked, a stop the tip meets).
+An optional channel beside the plays: the charging current ``dv/dt`` (``rate_channel``:
+bending that follows the migrating ions, not their charge). After the map an output stage
+scales the negative side (``negative_gain_``: an electrode face that cracked), lets gain and
+offset change linearly with the time since the start (``drift_gain_per_s_``,
+``drift_offset_mm_per_s_``: an IPMC dehydrating) and softly limits the tip (``limit_mm_``: a
+stop); :meth:`GeneralizedPI.fit` leaves it neutral, the residual diagnosis fits it.
 
 Every parameter but ``tau``, ``S`` enters linearly or bilinearly, and there is no output
 feedback: the free run is the one-step prediction, bounded for any bounded input. The joint
@@ -57,6 +57,8 @@ from .errors import check_fitted
 
 #: Relaxation time constants (s), spaced by 3: charging (tens of ms) to creep (minutes).
 DEFAULT_MEMORY_TAUS_S = (0.05, 0.15, 0.45, 1.35, 4.0, 12.0, 36.0, 108.0)
+#: Travels (V of charge) of the path-memory channels: smooth rate-independent memory.
+DEFAULT_PATH_MEMORY_V = (0.5, 2.0, 8.0, 32.0)
 #: Play thresholds as shares of the largest |u| of the identification record.
 DEFAULT_THRESHOLD_SHARES = (0.1, 0.25, 0.5, 0.75)
 #: Ridge weights tried by the cross-validation (on standardised features, per sample).
@@ -92,6 +94,28 @@ def lowpass_bank(v, taus_s, dt_s: float, state=None) -> tuple[np.ndarray, np.nda
     out = np.empty((np.size(v), a.size))
     for j, aj in enumerate(a):
         out[:, j] = lfilter([1.0 - aj], [1.0, -aj], v, zi=[aj * x0[j]])[0]
+    return out, (out[-1].copy() if len(out) else x0.copy())
+
+
+def travel_bank(v, travels_v, v_prev: float = 0.0, state=None) -> tuple[np.ndarray, np.ndarray]:
+    """Low-passes of ``v`` in its own travel, not in time: ``x_k = a_k x_{k-1} + (1 - a_k) v_k``
+    with ``a_k = exp(-|v_k - v_{k-1}| / T_j)``. Rate-independent smooth path memory (a Duhem or
+    Bouc-Wen element forgets its turning point over a travel, not a time); still while the
+    input holds. The (N, J) outputs and the last (J,), from ``state`` and ``v_prev`` or rest.
+
+    A first-order recursion with varying coefficients is a prefix scan of affine maps
+    (``(a2, b2) o (a1, b1) = (a2 a1, a2 b1 + b2)``): log2(N) vectorised passes."""
+    v = np.asarray(v, dtype=float)
+    T = np.asarray(travels_v, dtype=float)
+    x0 = np.zeros(T.size) if state is None else np.asarray(state, dtype=float)
+    A = np.exp(-np.abs(np.diff(v, prepend=v_prev))[:, None] / T)
+    B = (1.0 - A) * v[:, None]
+    shift = 1
+    while shift < v.size:
+        B[shift:] = A[shift:] * B[:-shift] + B[shift:]
+        A[shift:] = A[shift:] * A[:-shift]
+        shift *= 2
+    out = A * x0 + B
     return out, (out[-1].copy() if len(out) else x0.copy())
 
 
@@ -167,12 +191,14 @@ def dead_zone(u: np.ndarray, width_v: float) -> np.ndarray:
 @dataclass(frozen=True)
 class GpiState:
     """The model's state after a sample: charge v (V), relaxations (J,), plays (C, M), and
-    the samples run so far (the drift channels' clock)."""
+    the samples run so far (the drift's clock)."""
 
     v: float
     relax: np.ndarray
     plays: np.ndarray
     k: int = 0
+    travel: np.ndarray | None = None
+    out_relax: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -247,7 +273,8 @@ class GeneralizedPI:
                  rate_limit: bool = True, alphas=DEFAULT_ALPHAS, n_folds: int = 5,
                  row_step: int = 2, max_nfev: int = 25, max_delay_s: float = 0.3,
                  dt_s: float = 0.01, delay_s: float | None = None, dead_zone_v: float = 0.0,
-                 rate_channel: bool = False, drift: bool = False, progress=None):
+                 rate_channel: bool = False, drift: bool = False,
+                 path_memory_v=DEFAULT_PATH_MEMORY_V, output_taus_s=(), progress=None):
         self.memory_taus_s = tuple(float(t) for t in memory_taus_s)
         self.play_channels = play_channels
         self.threshold_shares = tuple(float(s) for s in threshold_shares)
@@ -263,9 +290,22 @@ class GeneralizedPI:
         self.dead_zone_v = float(dead_zone_v)
         self.rate_channel = bool(rate_channel)
         self.drift = bool(drift)
+        self.path_memory_v = tuple(float(t) for t in path_memory_v)
+        self.output_taus_s = tuple(float(t) for t in output_taus_s)
         self.progress = progress
         self.weights_ = None
+        self.neutral_output_stage()
+
+    def neutral_output_stage(self) -> None:
+        """Output stage off: negative-side gain 1, no drift, no limit."""
         self.negative_gain_, self.limit_mm_ = 1.0, math.inf
+        self.drift_gain_per_s_, self.drift_offset_mm_per_s_ = 0.0, 0.0
+        self.output_coef_ = np.zeros(len(self.output_taus_s))
+
+    def _output_relax(self, u: np.ndarray, theta) -> np.ndarray:
+        """The charge's relaxations added to the bending after the map, (N, len(output_taus_s)):
+        a slow relaxation of the tip itself (creep), linear in the charge."""
+        return lowpass_bank(self._charge(u, theta), self.output_taus_s, self.dt_s)[0]
 
     # -- features ----------------------------------------------------------------------------
     def _charge(self, u: np.ndarray, theta) -> np.ndarray:
@@ -279,30 +319,30 @@ class GeneralizedPI:
         relax, _ = lowpass_bank(v, self.memory_taus_s_, self.dt_s)
         ch = np.column_stack([v, relax])
         plays, _ = play_bank(ch[:, :self.thresholds_.shape[0]], self.thresholds_)
-        return np.hstack([ch, plays, self._extra_channels(v, np.arange(v.size))])
+        travel, _ = travel_bank(v, self.path_memory_v)
+        return np.hstack([ch, plays, travel, self._extra_channels(v)])
 
-    def _extra_channels(self, v: np.ndarray, k: np.ndarray, v_prev=None) -> np.ndarray:
-        """The charging current and the drift clock, shape (N, 0..3), for charges ``v`` at
-        sample indices ``k``; ``v_prev``: each one's previous charge (None: ``v`` is a run
-        from rest)."""
-        cols = []
-        if self.rate_channel:
-            prev = np.concatenate([[0.0], v[:-1]]) if v_prev is None else v_prev
-            cols.append((v - prev) / self.dt_s)
-        if self.drift:
-            t = k * self.dt_s
-            cols += [t, t * v]
-        return np.column_stack(cols) if cols else np.zeros((v.size, 0))
+    def _extra_channels(self, v: np.ndarray, v_prev=None) -> np.ndarray:
+        """The charging current, shape (N, 0 or 1), for charges ``v``; ``v_prev``: each one's
+        previous charge (None: ``v`` is a run from rest)."""
+        if not self.rate_channel:
+            return np.zeros((v.size, 0))
+        prev = np.concatenate([[0.0], v[:-1]]) if v_prev is None else v_prev
+        return ((v - prev) / self.dt_s)[:, None]
 
     @property
     def n_extra_channels(self) -> int:
         """Channels beside the charge, relaxations and plays."""
-        return int(self.rate_channel) + 2 * int(self.drift)
+        return int(self.rate_channel)
 
-    def output_stage(self, y: np.ndarray) -> np.ndarray:
-        """The map's output through the negative-side gain and the soft limit."""
+    def output_stage(self, y: np.ndarray, t_s, added=0.0) -> np.ndarray:
+        """The map's output ``y`` (mm) at times ``t_s`` (s since the start) through the
+        negative-side gain, the drift, the ``added`` output relaxations and the soft limit."""
         if self.negative_gain_ != 1.0:
             y = np.where(y < 0, self.negative_gain_ * y, y)
+        if self.drift_gain_per_s_ != 0.0 or self.drift_offset_mm_per_s_ != 0.0:
+            y = y * (1.0 + self.drift_gain_per_s_ * t_s) + self.drift_offset_mm_per_s_ * t_s
+        y = y + added
         if math.isfinite(self.limit_mm_):
             y = self.limit_mm_ * np.tanh(y / self.limit_mm_)
         return y
@@ -351,7 +391,7 @@ class GeneralizedPI:
             delays = sorted({0, d_lin})
         else:
             delays = [int(round(self.delay_s / self.dt_s))]
-        self.negative_gain_, self.limit_mm_ = 1.0, math.inf
+        self.neutral_output_stage()
         fits = []
         for d in delays:
             self.delay_samples_ = d
@@ -381,7 +421,8 @@ class GeneralizedPI:
         A0 = np.column_stack([(F0 - self.feature_mean_) / self.feature_scale_, np.ones(u.size)])
         w0 = np.linalg.lstsq(A0, y, rcond=None)[0]
         self.knots_ = place_knots(A0 @ w0, int(self.n_knots))
-        coef0 = np.zeros(int(self.n_knots) + 1)
+        coef0 = np.zeros(int(self.n_knots) + 1 + (2 if self.drift else 0)
+                         + len(self.output_taus_s))
         coef0[0] = 1.0
         x = self._joint_fit(u, y, np.concatenate([theta0, w0, coef0]), bounds,
                             self.alphas[0])
@@ -405,8 +446,13 @@ class GeneralizedPI:
             self.charge_tau_s_, self.slew_v_per_s_ = (float(v) for v in np.exp(x[:2]))
         else:
             self.charge_tau_s_, self.slew_v_per_s_ = 0.0, math.inf
+        k = self.knots_.size + 1
         self.weights_ = np.array(x[2:2 + p])
-        self.map_coef_ = np.array(x[2 + p:])
+        self.map_coef_ = np.array(x[2 + p:2 + p + k])
+        if self.drift:
+            self.drift_gain_per_s_, self.drift_offset_mm_per_s_ = (float(v) for v in
+                                                                   x[2 + p + k:4 + p + k])
+        self.output_coef_ = np.array(x[x.size - len(self.output_taus_s):])
 
     def _joint_fit(self, u, y, x0, bounds, alpha: float, max_nfev: int | None = None
                    ) -> np.ndarray:
@@ -414,37 +460,48 @@ class GeneralizedPI:
         on the feature weights (not on the constant)."""
         rows = np.arange(0, u.size, max(1, int(self.row_step)))
         p, kn = self.feature_mean_.size + 1, self.knots_
+        k = kn.size + 1
+        t = rows * self.dt_s
         ridge = math.sqrt(alpha * rows.size)
         n_theta = 2 if self.rate_limit else 0
+        n_out = len(self.output_taus_s)
         cache: dict = {}
 
         def design(theta):
             key = tuple(np.round(theta, 12))
             if key not in cache:
                 cache.clear()
-                cache[key] = self._design(u, theta)[rows]
+                cache[key] = (self._design(u, theta)[rows], self._output_relax(u, theta)[rows])
             return cache[key]
 
         def split(x):
-            return x[:2], x[2:2 + p], x[2 + p:]
+            g, o = x[2 + p + k:4 + p + k] if self.drift else (0.0, 0.0)
+            return x[:2], x[2:2 + p], x[2 + p:2 + p + k], g, o, x[x.size - n_out:]
+
+        def output(A, X, w, c, g, o, e):
+            return (hinge_basis(A @ w, kn) @ c) * (1.0 + g * t) + o * t + X @ e
 
         def residual(x):
-            th, w, c = split(x)
-            return np.concatenate([hinge_basis(design(th) @ w, kn) @ c - y[rows], ridge * w[:-1]])
+            th, w, c, g, o, e = split(x)
+            return np.concatenate([output(*design(th), w, c, g, o, e) - y[rows], ridge * w[:-1]])
 
         def jacobian(x):
-            th, w, c = split(x)
-            A = design(th)
+            th, w, c, g, o, e = split(x)
+            A, X = design(th)
             z = A @ w
             base = hinge_basis(z, kn) @ c
+            scale = (1.0 + g * t)[:, None]
+            now = output(A, X, w, c, g, o, e)
             cols = []
             for i in range(n_theta):  # finite differences through the charging recursion
                 t2 = th.copy()
                 t2[i] += 1e-4
-                cols.append((hinge_basis(self._design(u, t2)[rows] @ w, kn) @ c - base) / 1e-4)
+                A2, X2 = self._design(u, t2)[rows], self._output_relax(u, t2)[rows]
+                cols.append((output(A2, X2, w, c, g, o, e) - now) / 1e-4)
             cols += [np.zeros(rows.size)] * (2 - n_theta)
-            top = np.hstack([np.column_stack(cols), A * hinge_slope(z, kn, c)[:, None],
-                             hinge_basis(z, kn)])
+            drift = [np.column_stack([base * t, t])] if self.drift else []
+            top = np.hstack([np.column_stack(cols), A * hinge_slope(z, kn, c)[:, None] * scale,
+                             hinge_basis(z, kn) * scale] + drift + [X])
             bottom = np.zeros((p - 1, top.shape[1]))
             bottom[:, 2:p + 1] = ridge * np.eye(p - 1)
             return np.vstack([top, bottom])
@@ -463,9 +520,16 @@ class GeneralizedPI:
     def _cross_validate(self, u, y, x) -> CvResult:
         """Ridge weight by blocked K-fold CV: the map linearised at the joint fit (one
         Gauss-Newton step in w per alpha and fold), scored on the held-out block's free run."""
-        p = self.feature_mean_.size + 1
+        p, k = self.feature_mean_.size + 1, self.knots_.size + 1
         A = self._design(u, x[:2])
-        w, c = x[2:2 + p], x[2 + p:]
+        w, c = x[2:2 + p], x[2 + p:2 + p + k]
+        n_out = len(self.output_taus_s)
+        if n_out:  # judged on the record with the fitted output stage undone
+            y = y - self._output_relax(u, x[:2]) @ x[x.size - n_out:]
+        if self.drift:
+            g, o = x[2 + p + k:4 + p + k]
+            t = np.arange(u.size) * self.dt_s
+            y = (y - o * t) / np.maximum(1.0 + g * t, 1e-3)
         z = A @ w
         slope = hinge_slope(z, self.knots_, c)
         target = y - hinge_basis(z, self.knots_) @ c + slope * z
@@ -490,8 +554,12 @@ class GeneralizedPI:
     def simulate(self, u) -> np.ndarray:
         """Free-run output (mm), shape (N,), from input ``u`` (V), every state from rest."""
         check_fitted(self, "weights_")
-        z = self._design(as_signal("u", u), self._theta) @ self.weights_
-        return self.output_stage(hinge_basis(z, self.knots_) @ self.map_coef_)
+        u = as_signal("u", u)
+        z = self._design(u, self._theta) @ self.weights_
+        added = self._output_relax(u, self._theta) @ self.output_coef_ if self.output_taus_s \
+            else 0.0
+        return self.output_stage(hinge_basis(z, self.knots_) @ self.map_coef_,
+                                 np.arange(z.size) * self.dt_s, added)
 
     def predict(self, u, y=None) -> np.ndarray:
         """One-step prediction; the model has no output feedback, so this equals simulate."""
@@ -529,7 +597,9 @@ class GeneralizedPI:
                 "n_folds": self.n_folds, "row_step": self.row_step,
                 "max_nfev": self.max_nfev, "max_delay_s": self.max_delay_s, "dt_s": self.dt_s,
                 "delay_s": self.delay_s, "dead_zone_v": self.dead_zone_v,
-                "rate_channel": self.rate_channel, "drift": self.drift}
+                "rate_channel": self.rate_channel, "drift": self.drift,
+                "path_memory_v": list(self.path_memory_v),
+                "output_taus_s": list(self.output_taus_s)}
 
 
 class GpiStepper:
@@ -543,6 +613,8 @@ class GpiStepper:
     def __init__(self, model: GeneralizedPI, u_history=None):
         self._m = model
         self._a = np.exp(-model.dt_s / np.asarray(model.memory_taus_s_, dtype=float))
+        self._travels = np.asarray(model.path_memory_v, dtype=float)
+        self._a_out = np.exp(-model.dt_s / np.asarray(model.output_taus_s, dtype=float))
         self.reset(u_history)
 
     def reset(self, u_history=None) -> None:
@@ -551,7 +623,8 @@ class GpiStepper:
         d = int(m.delay_samples_)
         if u_history is None or len(u_history) == 0:
             self._queue = deque([0.0] * d)
-            self.state = GpiState(0.0, np.zeros(self._a.size), np.zeros(m.thresholds_.shape))
+            self.state = GpiState(0.0, np.zeros(self._a.size), np.zeros(m.thresholds_.shape),
+                                  0, np.zeros(len(m.path_memory_v)), np.zeros(self._a_out.size))
             return
         u = as_signal("u_history", u_history)
         past = dead_zone(u, m.dead_zone_v).tolist()[-d:] if d else []
@@ -560,7 +633,9 @@ class GpiStepper:
         relax, zf = lowpass_bank(v, m.memory_taus_s_, m.dt_s)
         ch = np.column_stack([v, relax])
         _, plays = play_bank(ch[:, :m.thresholds_.shape[0]], m.thresholds_)
-        self.state = GpiState(float(v[-1]), zf, plays, int(u.size))
+        _, travel = travel_bank(v, m.path_memory_v)
+        _, out_relax = lowpass_bank(v, m.output_taus_s, m.dt_s)
+        self.state = GpiState(float(v[-1]), zf, plays, int(u.size), travel, out_relax)
 
     def _channels(self, x: np.ndarray):
         """Charge v (G,), relaxations (G, J), plays (G, C, M) after charge inputs ``x`` (G,)."""
@@ -573,14 +648,18 @@ class GpiStepper:
         relax = self._a * s.relax + (1.0 - self._a) * v[:, None]
         ch = np.column_stack([v, relax])[:, :m.thresholds_.shape[0], None]
         plays = np.maximum(ch - m.thresholds_, np.minimum(ch + m.thresholds_, s.plays))
-        return v, relax, plays
+        a = np.exp(-np.abs(v - s.v)[:, None] / self._travels)
+        travel = a * s.travel + (1.0 - a) * v[:, None]
+        out_relax = self._a_out * s.out_relax + (1.0 - self._a_out) * v[:, None]
+        return v, relax, plays, travel, out_relax
 
-    def _output(self, v, relax, plays) -> np.ndarray:
+    def _output(self, v, relax, plays, travel, out_relax) -> np.ndarray:
         m = self._m
-        extra = m._extra_channels(v, np.full(v.size, self.state.k), np.full(v.size, self.state.v))
-        phi = np.column_stack([v, relax, plays.reshape(v.size, -1), extra])
+        extra = m._extra_channels(v, np.full(v.size, self.state.v))
+        phi = np.column_stack([v, relax, plays.reshape(v.size, -1), travel, extra])
         z = ((phi - m.feature_mean_) / m.feature_scale_) @ m.weights_[:-1] + m.weights_[-1]
-        return m.output_stage(hinge_basis(z, m.knots_) @ m.map_coef_)
+        return m.output_stage(hinge_basis(z, m.knots_) @ m.map_coef_, self.state.k * m.dt_s,
+                              out_relax @ m.output_coef_)
 
     def outputs(self, x_candidates) -> np.ndarray:
         """Model outputs (mm) for candidate charge inputs (V) of this sample; state unchanged."""
@@ -588,9 +667,10 @@ class GpiStepper:
 
     def advance(self, x_v: float) -> float:
         """One sample with ``x_v`` (V) reaching the charging stage; returns the output (mm)."""
-        v, relax, plays = self._channels(np.array([float(x_v)]))
-        y = float(self._output(v, relax, plays)[0])
-        self.state = GpiState(float(v[0]), relax[0], plays[0], self.state.k + 1)
+        v, relax, plays, travel, out_relax = self._channels(np.array([float(x_v)]))
+        y = float(self._output(v, relax, plays, travel, out_relax)[0])
+        self.state = GpiState(float(v[0]), relax[0], plays[0], self.state.k + 1, travel[0],
+                              out_relax[0])
         return y
 
     def step(self, u_v: float) -> float:

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 
-from .diagnose import input_kind
 from .effects import (
     AugmentedInverse,
     AugmentedModel,
@@ -24,6 +23,7 @@ from .effects import (
     load_augmented,
     save_augmented,
 )
+from .excitation import input_kind
 from .hysteresis import GeneralizedPI, GpiInverse
 from .metrics import score
 from .narx import PAPER_C, PAPER_SIGMA, InverseNarxModel, NarxModel
@@ -214,14 +214,12 @@ def _identify_parser() -> argparse.ArgumentParser:
                         "numerical inverse; lssvm-narx identifies the inverse model "
                         "u = h(y, past u) (Eq. 19)")
     p.add_argument("--effects-from", metavar="MODEL",
-                   help="lssvm-narx --inverse: the feedforward of an augmented model (ipmc "
-                        "diagnose's model_after.json). The inverse is fitted on this record as "
-                        "the model's baseline sees it, and the effects are undone around it "
-                        "step by step: the creep's state is subtracted from the desired "
-                        "displacement; dead zone, asymmetry and saturation are inverted. "
-                        "Drift, delay and channel blocks are left out, with a note. The "
-                        "record must be at the model's sample rate. --out is then an augmented "
-                        "model file that ipmc track and model_server serve as an inverse model")
+                   help="a model with effects (ipmc diagnose's model_after.json): its "
+                        "structure, with the delay, dead zone, creep, drift and charging-current "
+                        "stages the diagnosis added, refitted on this record; with --inverse "
+                        "its feedforward, which undoes them too. The record must be at the "
+                        "model's sample rate. An augmented LSSVM-NARX file of earlier versions "
+                        "goes with --model lssvm-narx --inverse")
     _add_narx_options(p)
     p.add_argument("--pi-method", choices=("nnls", "pso"), default="nnls",
                    help="pi: thresholds on a grid + NNLS (default, invertible) or PSO (paper)")
@@ -306,8 +304,8 @@ def identify_main(argv: list[str] | None = None) -> int:
         meta = {"data": str(args.data), "samples": int(u.size), "rate_hz": float(rec.rate_hz),
                 "input_kind": input_kind(u, float(rec.rate_hz)),
                 "input_range_v": [float(u.min()), float(u.max())]}
-        if args.effects_from and (args.model != "lssvm-narx" or not args.inverse):
-            raise ValueError("--effects-from makes a feedforward: it needs --model lssvm-narx "
+        if args.effects_from and args.model in ("lssvm-narx", "pi") and not args.inverse:
+            raise ValueError("--effects-from with --model lssvm-narx makes a feedforward: add "
                              "--inverse")
         model = _identify(args, rec, u, y, meta)
         meta["record_limits"] = record_limits(u, float(rec.rate_hz))
@@ -332,6 +330,8 @@ def identify_main(argv: list[str] | None = None) -> int:
 def _identify(args, rec, u, y, meta: dict):
     """The model of the command line's family (or of the comparison, without --model)."""
     dt_s = 1.0 / float(rec.rate_hz)
+    if args.effects_from and args.model in (None, "gpi"):
+        return _gpi_with_effects(args, u, y, dt_s, meta)
     if args.model is None and args.inverse:
         args.model = "gpi"
     if args.model is None:
@@ -372,6 +372,37 @@ FAMILY_OPTIONS = {"--tune": "tune", "--C": "C", "--sigma": "sigma", "--input-lag
                   "--output-lags": "output_lags", "--lag-step": "lag_step",
                   "--memory-taus": "memory_taus", "--input-memory-taus": "input_memory_taus",
                   "--prototypes": "prototypes"}
+
+
+def _gpi_with_effects(args, u, y, dt_s: float, meta: dict):
+    """--effects-from a GPI file (ipmc diagnose's model_after.json): its structure, with the
+    effects the diagnosis added (delay, dead zone, creep, drift, charging current), refitted
+    on this record; with --inverse its feedforward, which undoes them too."""
+    src = load_any_model(args.effects_from)
+    if isinstance(src, GpiInverse):
+        src = src.model
+    if not isinstance(src, GeneralizedPI):
+        raise ValueError(f"{args.effects_from} is not a GPI model; an augmented LSSVM-NARX "
+                         "file is used with --model lssvm-narx --inverse --effects-from")
+    if abs(src.dt_s - dt_s) > 0.01 * dt_s:
+        raise ValueError(f"{args.effects_from} runs at {1 / src.dt_s:.4g} Hz, the record at "
+                         f"{1 / dt_s:.4g} Hz")
+    _check_gpi_args(args)
+    print(f"refitting the structure of {args.effects_from} on this record: {gpi_stages(src)}",
+          file=sys.stderr, flush=True)
+    model = GeneralizedPI(**{**src.get_params(), "progress": _stage}).fit(u, y)
+    meta["effects_from"] = str(args.effects_from)
+    return model.inverse() if args.inverse else model
+
+
+def gpi_stages(m: GeneralizedPI) -> str:
+    """The optional stages of a GPI model in words."""
+    parts = [f"delay {m.delay_s:g} s" if m.delay_s else "",
+             f"dead zone {m.dead_zone_v:.3g} V" if m.dead_zone_v else "",
+             f"creep taus {', '.join(f'{t:g}' for t in m.output_taus_s)} s"
+             if m.output_taus_s else "",
+             "drift" if m.drift else "", "charging-current channel" if m.rate_channel else ""]
+    return ", ".join(p for p in parts if p) or "no optional stage"
 
 
 def _check_no_family_options(args) -> None:

@@ -155,6 +155,9 @@ def _gpi_doc(model) -> tuple[str, dict, dict]:
             "cv": m.cv_.as_dict()}
     body.update({k: float(getattr(m, k)) for k in GPI_SCALARS})
     body["negative_gain_"] = float(m.negative_gain_)
+    body["output_coef_"] = [float(v) for v in m.output_coef_]
+    body["drift_gain_per_s_"] = float(m.drift_gain_per_s_)
+    body["drift_offset_mm_per_s_"] = float(m.drift_offset_mm_per_s_)
     body["limit_mm_"] = float(m.limit_mm_) if math.isfinite(m.limit_mm_) else None
     body["delay_samples_"] = int(m.delay_samples_)
     if inverse:
@@ -165,12 +168,18 @@ def _gpi_doc(model) -> tuple[str, dict, dict]:
 def _build_gpi(body: dict, arrays: dict):
     from .hysteresis import CvResult
 
-    m = GeneralizedPI(**body["params"])
+    # a file written before the path-memory channels has none
+    m = GeneralizedPI(**{"path_memory_v": (), **body["params"]})
     m.memory_taus_s_ = tuple(float(t) for t in body["memory_taus_s_"])
     for k in GPI_SCALARS:
         setattr(m, k, float(body[k]))
     m.delay_samples_ = int(body["delay_samples_"])
     m.negative_gain_ = float(body.get("negative_gain_", 1.0))
+    m.output_coef_ = np.asarray(body.get("output_coef_", []), dtype=float)
+    if m.output_coef_.size != len(m.output_taus_s):
+        raise ValueError("the output relaxations' coefficients do not match their time constants")
+    m.drift_gain_per_s_ = float(body.get("drift_gain_per_s_", 0.0))
+    m.drift_offset_mm_per_s_ = float(body.get("drift_offset_mm_per_s_", 0.0))
     limit = body.get("limit_mm_")
     m.limit_mm_ = math.inf if limit is None else float(limit)
     for k in GPI_ARRAYS:
@@ -183,7 +192,8 @@ def _build_gpi(body: dict, arrays: dict):
     p = m.feature_mean_.size
     if (m.weights_.size != p + 1 or m.feature_scale_.size != p
             or m.map_coef_.size != m.knots_.size + 1
-            or p != 1 + len(m.memory_taus_s_) + m.thresholds_.size + m.n_extra_channels
+            or p != (1 + len(m.memory_taus_s_) + m.thresholds_.size + len(m.path_memory_v)
+                     + m.n_extra_channels)
             or m.thresholds_.shape[0] > 1 + len(m.memory_taus_s_)):
         raise ValueError("the GPI arrays do not match its channels")
     if not (m.dt_s > 0 and m.delay_samples_ >= 0 and m.charge_tau_s_ >= 0

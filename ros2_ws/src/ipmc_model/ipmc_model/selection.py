@@ -198,7 +198,7 @@ ONE_AMPLITUDE_SPREAD = 0.05
 def record_limits(u, rate_hz: float) -> list[str]:
     """What the record cannot show about how a model generalises, one sentence each (with
     what to record instead); empty when it can show it."""
-    from .diagnose import input_kind
+    from .excitation import input_kind
 
     u = as_signal("u", u)
     out = []
@@ -240,7 +240,7 @@ def unlike_identification(metadata: dict, u, rate_hz: float) -> list[str]:
     """How a record (u V at ``rate_hz``) differs from the one a model was identified on, as
     its file's ``metadata`` keeps it (rate, input range, bandwidth and holds), one sentence
     each; empty when it does not differ, or when the file does not say."""
-    from .diagnose import input_kind, kind_text, kinds_differ, model_input_kind
+    from .excitation import input_kind, kind_text, kinds_differ, model_input_kind
 
     u = as_signal("u", u)
     out = []

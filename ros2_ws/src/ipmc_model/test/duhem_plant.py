@@ -16,9 +16,10 @@ RESOLUTION_MM = 0.01
 NOISE_FLOOR_MM = float(np.hypot(NOISE_STD_MM, RESOLUTION_MM / np.sqrt(12.0)))
 
 
-def duhem_plant(u_v, seed: int = 0, dt_s: float = 0.01) -> np.ndarray:
-    """Measured displacement (mm) of the Duhem actuator for the voltage ``u_v`` (V)."""
-    u = np.concatenate([np.zeros(4), np.asarray(u_v, float)])[:len(u_v)]
+def duhem_plant(u_v, seed: int = 0, dt_s: float = 0.01, delay_samples: int = 4) -> np.ndarray:
+    """Measured displacement (mm) of the Duhem actuator for the voltage ``u_v`` (V), its drive
+    delayed by ``delay_samples``."""
+    u = np.concatenate([np.zeros(delay_samples), np.asarray(u_v, float)])[:len(u_v)]
     h, out = 0.0, np.empty(u.size)
     prev = 0.0
     for k, uk in enumerate(u):  # dh = a |du| (c u - h) + b du along the path, in 0.01 V steps

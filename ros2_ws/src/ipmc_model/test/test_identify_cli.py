@@ -3,8 +3,9 @@ import json
 import numpy as np
 import pytest
 
+from ipmc_driver.dataio import load_record
 from ipmc_model.identify_cli import evaluate_main, identify_main
-from ipmc_model.persistence import load_model
+from ipmc_model.persistence import load_model, save_model
 
 
 @pytest.fixture(scope="module")
@@ -177,7 +178,7 @@ def test_identify_builds_a_forward_model_with_voltage_channels(tmp_path, csvs, c
     assert doc["metadata"]["training_metrics"]["free_run"]["rmse"] == pytest.approx(rmse)
     assert rmse < 0.2 * np.std(rec.y_mm)
     # the kind of input it was identified on, which ipmc diagnose --model checks a record against
-    from ipmc_model.diagnose import input_kind, model_input_kind
+    from ipmc_model.excitation import input_kind, model_input_kind
 
     assert doc["metadata"]["input_kind"] == pytest.approx(input_kind(rec.u_v, rec.rate_hz))
     assert model_input_kind(m) == pytest.approx(doc["metadata"]["input_kind"])
@@ -275,7 +276,7 @@ def test_identify_inverse_with_effects_from_writes_the_feedforward(tmp_path, csv
 
 
 @pytest.mark.parametrize("case, message", [
-    ("forward", "--effects-from makes a feedforward: it needs --model lssvm-narx --inverse"),
+    ("forward", "--effects-from with --model lssvm-narx makes a feedforward: add --inverse"),
     ("no effects", "has no effect a feedforward can undo (effects: delay)"),
     ("rate", "the model was identified at 50 Hz, the data are at 100 Hz"),
 ])
@@ -310,3 +311,24 @@ def test_lssvm_narx_options_not_given_are_the_documented_recipe(tmp_path, csvs, 
     assert m.regressor_.C == expected.pop("C") and m.regressor_.sigma == expected.pop("sigma")
     for key, value in expected.items():
         assert getattr(m, key) == value
+
+
+def test_identify_effects_from_a_gpi_refits_its_stages_and_inverts_them(tmp_path, csvs, capsys):
+    """A diagnosis's model_after (a GPI with a delay, a dead zone and a creep) as the structure
+    of a new model and of its feedforward."""
+    from ipmc_model.hysteresis import GeneralizedPI, GpiInverse
+
+    train, _ = csvs
+    rec = load_record(train)
+    src = GeneralizedPI(dt_s=rec.dt_s, delay_s=0.03, dead_zone_v=0.2, output_taus_s=(12.0,),
+                        max_nfev=5).fit(rec.u_v, rec.y_mm)
+    save_model(src, tmp_path / "after.json")
+    out = tmp_path / "ff.json"
+    assert identify_main(["--data", str(train), "--inverse", "--effects-from",
+                          str(tmp_path / "after.json"), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "delay 0.03 s, dead zone 0.2 V, creep taus 12 s" in err
+    ff = load_model(out)
+    assert isinstance(ff, GpiInverse)
+    m = ff.model
+    assert (m.delay_samples_, m.dead_zone_v, m.output_taus_s) == (3, 0.2, (12.0,))

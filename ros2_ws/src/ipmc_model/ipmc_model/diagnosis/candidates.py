@@ -1,0 +1,431 @@
+"""Candidate effects: one small class each, one interface, one registry.
+
+A candidate names a physical effect, says whether the record's excitation can show it (and
+what to record instead), and fits the block that adds it to a :class:`GeneralizedPI`:
+
+* ``refit``: the diagnosis's own model, refitted on the fit rows with the block's stage
+  switched on (its physical parameter from a structural scan, within bounds);
+* ``around``: a given model (another day's), frozen; only the block's own parameters are
+  fitted on the fit rows.
+
+Either way the result is again a :class:`GeneralizedPI`, so its file, its inverse (the
+feedforward undoes the block too) and the model server need nothing new. To add an effect,
+write one subclass and decorate it with :func:`register`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from ..hysteresis import (
+    DEFAULT_MEMORY_TAUS_S,
+    MIN_SPANS_PER_TAU,
+    GeneralizedPI,
+    dead_zone,
+    estimate_delay,
+    hinge_basis,
+    hinge_slope,
+)
+from .record import DiagnosisRecord
+
+
+@dataclass(frozen=True)
+class Fitted:
+    """A candidate's model (fitted on the fit rows), its physical parameters and the
+    structural scan that set them."""
+
+    model: GeneralizedPI
+    params: dict
+    scan: str = ""
+
+
+class Candidate:
+    """One physical effect the model may lack."""
+
+    name: ClassVar[str] = ""
+    #: The effect in one line of physics.
+    meaning: ClassVar[str] = ""
+
+    def not_testable(self, rec: DiagnosisRecord, model: GeneralizedPI, given: bool
+                     ) -> str | None:
+        """Why the record cannot decide this effect and what to record instead; None if it
+        can."""
+        return None
+
+    def refit(self, model: GeneralizedPI, rec: DiagnosisRecord) -> Fitted | str:
+        """The own model with this block, refitted on the fit rows (or why none fits)."""
+        return "fitted only around a given model"
+
+    def around(self, model: GeneralizedPI, rec: DiagnosisRecord) -> Fitted | str:
+        """The given model with this block fitted around it, the rest frozen."""
+        raise NotImplementedError
+
+    def fit(self, model: GeneralizedPI, rec: DiagnosisRecord, given: bool) -> Fitted | str:
+        return self.around(model, rec) if given else self.refit(model, rec)
+
+
+CANDIDATES: dict[str, Candidate] = {}
+
+
+def register(cls: type[Candidate]) -> type[Candidate]:
+    """Class decorator: add the candidate to :data:`CANDIDATES` under its ``name``."""
+    if not cls.name or cls.name in CANDIDATES:
+        raise ValueError(f"a candidate needs a new, non-empty name (got {cls.name!r})")
+    CANDIDATES[cls.name] = cls()
+    return cls
+
+
+# -- shared fitting helpers -----------------------------------------------------------------
+def refit_with(model: GeneralizedPI, rec: DiagnosisRecord, **changes) -> GeneralizedPI:
+    """``model``'s hyperparameters with ``changes``, fitted on the fit rows as the model was
+    (its ridge weight chosen again by the blocked free-run CV)."""
+    m = GeneralizedPI(**{**model.get_params(), **changes})
+    return m.fit(rec.u_v[rec.fit], rec.y_mm[rec.fit])
+
+
+#: Trust-region iterations of the quick fits that scan a block's parameter (the final fit at
+#: the best value has the model's own).
+SCAN_NFEV = 10
+
+
+def scan_error(model: GeneralizedPI, rec: DiagnosisRecord, **changes) -> float:
+    """Fit-part RMSE of a quick refit of ``model`` with ``changes`` (ridge weight kept)."""
+    params = {**model.get_params(), **changes, "alphas": (model.cv_.alpha,),
+              "max_nfev": SCAN_NFEV}
+    return GeneralizedPI(**params).fit(rec.u_v[rec.fit], rec.y_mm[rec.fit]).train_rmse_
+
+
+def descend_delay(model: GeneralizedPI, rec: DiagnosisRecord, start: int, lo: int, hi: int
+                  ) -> tuple[int, str]:
+    """The delay (samples, in [lo, hi]) that quick refits prefer, by discrete descent from
+    ``start`` (the linear scan's); the scan's text."""
+    dt = rec.dt_s
+    cache = {}
+
+    def err(d: int) -> float:
+        if d not in cache:
+            cache[d] = scan_error(model, rec, delay_s=d * dt)
+        return cache[d]
+
+    d = min(max(start, lo), hi)
+    while True:
+        nbrs = [n for n in (d - 1, d + 1) if lo <= n <= hi]
+        better = [n for n in nbrs if err(n) < err(d)]
+        if not better:
+            break
+        d = min(better, key=err)
+    tried = ", ".join(f"{k}: {cache[k]:.4f}" for k in sorted(cache))
+    return d, f"linear scan {start} samples; quick refits (samples: fit RMSE mm) {tried}"
+
+
+def feature_names(m: GeneralizedPI) -> list[str]:
+    """Names of the model's raw feature columns, in order."""
+    return (["v"] + [f"relax {t:g} s" for t in m.memory_taus_s_]
+            + [f"play {i}" for i in range(m.thresholds_.size)]
+            + [f"travel {t:g} V" for t in m.path_memory_v]
+            + (["dv/dt"] if m.rate_channel else []))
+
+
+def with_new_columns(model: GeneralizedPI, rec: DiagnosisRecord, change, iterations: int = 3
+                     ) -> GeneralizedPI:
+    """A copy of ``model`` with ``change(copy)`` adding feature columns; only their weights
+    are fitted (Gauss-Newton through the frozen output map, on the fit rows)."""
+    import copy
+
+    m = copy.deepcopy(model)
+    change(m)
+    old = dict(zip(feature_names(model), range(model.feature_mean_.size), strict=True))
+    names = feature_names(m)
+    u, y = rec.u_v[rec.fit], rec.y_mm[rec.fit]
+    F = m._raw_features(u, m._theta)
+    mean, scale = F.mean(axis=0), np.where(F.std(axis=0) > 0, F.std(axis=0), 1.0)
+    w = np.zeros(len(names) + 1)
+    w[-1] = model.weights_[-1]
+    for j, n in enumerate(names):
+        if n in old:
+            i = old[n]
+            mean[j], scale[j], w[j] = model.feature_mean_[i], model.feature_scale_[i], \
+                model.weights_[i]
+    new = np.array([n not in old for n in names] + [False])
+    m.feature_mean_, m.feature_scale_ = mean, scale
+    A = np.column_stack([(F - mean) / scale, np.ones(u.size)])
+    for _ in range(iterations):
+        z = A @ w
+        r = y - m.output_stage(hinge_basis(z, m.knots_) @ m.map_coef_,
+                               np.arange(u.size) * rec.dt_s)
+        J = A[:, new] * hinge_slope(z, m.knots_, m.map_coef_)[:, None]
+        w[new] += np.linalg.lstsq(J, r, rcond=None)[0]
+    m.weights_ = w
+    return m
+
+
+def fit_sse(model: GeneralizedPI, rec: DiagnosisRecord) -> float:
+    """Free-run squared error of ``model`` on the fit rows."""
+    e = model.simulate(rec.u_v[rec.fit]) - rec.y_mm[rec.fit]
+    return float(e @ e)
+
+
+def scalar_around(model: GeneralizedPI, rec: DiagnosisRecord, attr: str, lo: float,
+                  hi: float) -> tuple[GeneralizedPI, float]:
+    """A copy of ``model`` with the scalar ``attr`` set by bounded minimisation of the fit
+    rows' free-run error over [lo, hi]."""
+    import copy
+
+    m = copy.deepcopy(model)
+
+    def sse(x: float) -> float:
+        setattr(m, attr, float(x))
+        return fit_sse(m, rec)
+
+    res = minimize_scalar(sse, bounds=(lo, hi), method="bounded",
+                          options={"xatol": 1e-3 * (hi - lo)})
+    setattr(m, attr, float(res.x))
+    return m, float(res.x)
+
+
+def fast_input_reason(rec: DiagnosisRecord, model: GeneralizedPI, what: str) -> str | None:
+    """None when the input has steps or power above the charging corner; else why a
+    ``what`` cannot be told from the charging lag, and what to record."""
+    c, ex = rec.config, rec.excitation
+    tau = max(model.charge_tau_s_, rec.dt_s)
+    f_corner = 1.0 / (2.0 * math.pi * tau)
+    share = rec.power_share_above(f_corner)
+    if ex.steps_fit >= c.min_steps or share >= c.delay_power_share:
+        return None
+    return (f"{ex.steps_fit} steps in the fit part and {100 * share:.0f} % of the input's "
+            f"power above the charging corner ({f_corner:.2g} Hz): there a {what} looks like "
+            f"the charging lag; record steps (at least {c.min_steps}) or faster input")
+
+
+# -- the effects ----------------------------------------------------------------------------
+def creep_taus(model: GeneralizedPI, rec: DiagnosisRecord) -> tuple[float, ...]:
+    """Creep time constants the fit part can identify and the model does not have."""
+    c = rec.config
+    return tuple(t for t in DEFAULT_MEMORY_TAUS_S
+                 if t >= c.creep_min_tau_s and t * MIN_SPANS_PER_TAU <= rec.excitation.fit_span_s
+                 and t not in model.memory_taus_s_ and t not in model.output_taus_s)
+
+
+@register
+class Creep(Candidate):
+    name = "creep"
+    meaning = ("slow relaxation under a sustained voltage (time constants of "
+               "tens of seconds to minutes): the tip keeps moving while the input holds")
+
+    def not_testable(self, rec, model, given):
+        c, ex = rec.config, rec.excitation
+        if not creep_taus(model, rec):
+            return (f"the fit part spans {ex.fit_span_s:.0f} s: a relaxation slower than "
+                    f"{c.creep_min_tau_s:g} s must be seen settling over "
+                    f"{MIN_SPANS_PER_TAU:g} of its time constants; record longer")
+        if ex.holds_fit < c.min_holds or ex.holds_held < c.min_holds:
+            return (f"{ex.holds_fit} input holds of {c.hold_min_s:g} s or more in the fit "
+                    f"part, {ex.holds_held} in the held-out part: on a moving input a slow "
+                    f"relaxation cannot be told from the memory of the path; record holds of "
+                    f"at least {c.hold_min_s:g} s at several levels in both parts")
+        return None
+
+    def refit(self, model, rec):
+        taus = creep_taus(model, rec)
+        if not taus:
+            return "no creep time constant the fit part can identify"
+        m = refit_with(model, rec, output_taus_s=tuple(model.output_taus_s) + taus)
+        return Fitted(m, _creep_params(m, taus))
+
+    def around(self, model, rec):
+        taus = creep_taus(model, rec)
+        if not taus:
+            return "no creep time constant the fit part can identify"
+
+        import copy
+
+        from ..hysteresis import lowpass_bank
+
+        m = copy.deepcopy(model)
+        v = m._charge(rec.u_v[rec.fit], m._theta)
+        X = lowpass_bank(v, taus, rec.dt_s)[0]
+        r = rec.y_mm[rec.fit] - m.simulate(rec.u_v[rec.fit])
+        m.output_taus_s = tuple(m.output_taus_s) + taus
+        m.output_coef_ = np.concatenate([m.output_coef_, np.linalg.lstsq(X, r, rcond=None)[0]])
+        return Fitted(m, _creep_params(m, taus))
+
+
+def _creep_params(m: GeneralizedPI, taus) -> dict:
+    """The creep's time constants and its gain on each (mm per V of charge)."""
+    n = len(taus)
+    return {"taus_s": list(taus), "gains_mm_per_v": [float(g) for g in m.output_coef_[-n:]]}
+
+
+def fit_drift(model: GeneralizedPI, rec: DiagnosisRecord) -> GeneralizedPI:
+    """A copy of ``model`` whose output gain and offset change linearly with time, the two
+    rates fitted by least squares on the fit rows (the rest frozen)."""
+    import copy
+
+    m = copy.deepcopy(model)
+    m.drift_gain_per_s_ = m.drift_offset_mm_per_s_ = 0.0
+    lim = m.limit_mm_
+    m.limit_mm_ = math.inf
+    y0 = m.simulate(rec.u_v[rec.fit])
+    t = np.arange(y0.size) * rec.dt_s
+    y = rec.y_mm[rec.fit]
+    if math.isfinite(lim):  # fit where the limit is undone
+        y = lim * np.arctanh(np.clip(y / lim, -0.999, 0.999))
+    g, o = np.linalg.lstsq(np.column_stack([y0 * t, t]), y - y0, rcond=None)[0]
+    m.drift_gain_per_s_, m.drift_offset_mm_per_s_, m.limit_mm_ = float(g), float(o), lim
+    m.drift = True
+    return m
+
+
+def _drift_params(m: GeneralizedPI) -> dict:
+    return {"gain_change_per_min": 60.0 * m.drift_gain_per_s_,
+            "offset_mm_per_min": 60.0 * m.drift_offset_mm_per_s_}
+
+
+@register
+class Drift(Candidate):
+    name = "drift"
+    meaning = ("an offset and a gain that change steadily over the record (dehydration, "
+               "temperature)")
+
+    def refit(self, model, rec):
+        m = refit_with(model, rec, drift=True)  # the two rates fitted jointly with the rest
+        return Fitted(m, _drift_params(m))
+
+    def around(self, model, rec):
+        m = fit_drift(model, rec)
+        return Fitted(m, _drift_params(m))
+
+
+@register
+class Delay(Candidate):
+    name = "delay"
+    meaning = "a transport delay between the command and the bending (drive, bus, sensor)"
+
+    def not_testable(self, rec, model, given):
+        return fast_input_reason(rec, model, "delay")
+
+    def refit(self, model, rec):
+        c = rec.config
+        u = dead_zone(rec.u_v[rec.fit], model.dead_zone_v)
+        d = estimate_delay(u, rec.y_mm[rec.fit], rec.dt_s, model.memory_taus_s_,
+                           int(round(c.max_delay_s / rec.dt_s)))
+        lo, hi = model.delay_samples_ + 1, int(round(c.max_delay_s / rec.dt_s))
+        d, scan = descend_delay(model, rec, max(d, lo), lo, hi)
+        m = refit_with(model, rec, delay_s=d * rec.dt_s)
+        return Fitted(m, {"delay_s": d * rec.dt_s}, scan)
+
+    def around(self, model, rec):
+        import copy
+
+        best, best_sse = 0, fit_sse(model, rec)
+        m = copy.deepcopy(model)
+        for d in range(1, int(round(rec.config.max_delay_s / rec.dt_s)) + 1):
+            m.delay_samples_ = model.delay_samples_ + d
+            s = fit_sse(m, rec)
+            if s < best_sse:
+                best, best_sse = d, s
+        if best == 0:
+            return "no added delay lowers the fit part's free-run error"
+        m.delay_samples_ = model.delay_samples_ + best
+        m.delay_s = m.delay_samples_ * rec.dt_s
+        return Fitted(m, {"delay_s": m.delay_samples_ * rec.dt_s},
+                      f"free-run scan: {best} samples added")
+
+
+#: Resolution of the dead zone's scan (V): below the sensor's reach at IPMC gains (~1 mm/V).
+DEAD_ZONE_TOL_V = 0.01
+
+
+@register
+class DeadZone(Candidate):
+    name = "dead_zone"
+    meaning = "voltages below a threshold move no ions (a contact or electrode threshold)"
+
+    def not_testable(self, rec, model, given):
+        c, share = rec.config, rec.excitation.near_zero_share
+        if share >= c.dead_zone_min_share:
+            return None
+        return (f"{100 * share:.1f} % of the fit part within +-{c.dead_zone_max_v:g} V: a "
+                f"dead zone shows in slow crossings of 0 V; record small, slow ones "
+                f"(at least {100 * c.dead_zone_min_share:.0f} % of the time)")
+
+    def refit(self, model, rec):
+        hi = rec.config.dead_zone_max_v
+        res = minimize_scalar(lambda w: scan_error(model, rec, dead_zone_v=float(w)),
+                              bounds=(model.dead_zone_v, model.dead_zone_v + hi),
+                              method="bounded", options={"xatol": DEAD_ZONE_TOL_V})
+        w = float(res.x)
+        m = refit_with(model, rec, dead_zone_v=w)
+        return Fitted(m, {"width_v": w}, f"bounded scan of quick refits: {w:.3f} V "
+                                         f"({res.nfev} refits)")
+
+    def around(self, model, rec):
+        m, w = scalar_around(model, rec, "dead_zone_v", model.dead_zone_v,
+                             model.dead_zone_v + rec.config.dead_zone_max_v)
+        return Fitted(m, {"width_v": w})
+
+
+@register
+class RateDependence(Candidate):
+    name = "rate_dependence"
+    meaning = ("bending that follows the charging current, not the charge (water dragged "
+               "with the migrating cations): loops widen with frequency")
+
+    def not_testable(self, rec, model, given):
+        return fast_input_reason(rec, model, "rate-dependent bending")
+
+    def refit(self, model, rec):
+        return Fitted(refit_with(model, rec, rate_channel=True), {"channel": "dv/dt"})
+
+    def around(self, model, rec):
+        if model.rate_channel:
+            return "the model already has a charging-current channel"
+
+        def add(m):
+            m.rate_channel = True
+        return Fitted(with_new_columns(model, rec, add), {"channel": "dv/dt"})
+
+
+OWN_MAP_REASON = ("without a given model the output map is fitted to this record and carries "
+                  "any {what}; give another day's model (--model) to see it change")
+
+
+@register
+class Asymmetry(Candidate):
+    name = "asymmetry"
+    meaning = "the bending towards one side weakened or strengthened (a cracked electrode face)"
+
+    def not_testable(self, rec, model, given):
+        return None if given else OWN_MAP_REASON.format(what="asymmetry")
+
+    def around(self, model, rec):
+        import copy
+
+        m = copy.deepcopy(model)
+        m.negative_gain_ = 1.0
+        y0 = m.simulate(rec.u_v[rec.fit])
+        neg = y0 < 0
+        if neg.sum() < 10:
+            return "the model's output is hardly ever negative on the fit part"
+        y = rec.y_mm[rec.fit]
+        m.negative_gain_ = float(np.clip((y0[neg] @ y[neg]) / (y0[neg] @ y0[neg]), 0.05, 20))
+        return Fitted(m, {"negative_gain_ratio": m.negative_gain_ / model.negative_gain_})
+
+
+@register
+class Saturation(Candidate):
+    name = "saturation"
+    meaning = "a soft limit of the tip (a stop, a stiffening) beyond the model's output map"
+
+    def not_testable(self, rec, model, given):
+        return None if given else OWN_MAP_REASON.format(what="soft limit")
+
+    def around(self, model, rec):
+        peak = float(np.max(np.abs(model.simulate(rec.u_v[rec.fit]))))
+        m, lim = scalar_around(model, rec, "limit_mm_", 0.3 * peak, 10.0 * peak)
+        return Fitted(m, {"limit_mm": lim})

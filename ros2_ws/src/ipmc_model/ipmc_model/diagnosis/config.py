@@ -1,0 +1,56 @@
+"""Every threshold of the residual diagnosis, in one frozen object written into its report."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+
+@dataclass(frozen=True)
+class DiagnosisConfig:
+    """The diagnosis's thresholds; each has its one-line reason beside it."""
+
+    #: The first share of the record fits, the rest judges (free run from the record's start).
+    fit_share: float = 0.7
+    #: Family-wise error of one round's tests, held by Holm's step-down over its candidates.
+    family_alpha: float = 0.05
+    #: A block is material when it cuts the held-out mean squared error by at least this share
+    #: of the sensor's noise variance: a smaller cut is below what the record can show.
+    material_noise_share: float = 0.25
+    #: Relaxations slower than this are creep; faster ones are the actuator's charging and
+    #: back-relaxation (an IPMC in water settles within a few seconds), in the core model.
+    creep_min_tau_s: float = 10.0
+    #: A hold is the input still for this long: five times the back-relaxation (about 0.5 s),
+    #: so that the fast dynamics have settled and what still moves is slow memory.
+    hold_min_s: float = 3.0
+    #: Holds needed in each of the fit and held-out parts to tell creep from path memory.
+    min_holds: int = 1
+    #: A step is a one-sample input change of at least this share of the input's range.
+    step_share: float = 0.1
+    #: Steps needed in the fit part to tell a transport delay from the charging lag.
+    min_steps: int = 3
+    #: Share of the input's power above the charging corner (1 / (2 pi tau)) that also tells a
+    #: delay from that lag (there the lag's phase levels off and a delay's keeps growing).
+    delay_power_share: float = 0.1
+    #: Widest dead zone searched (V), and the share of fit samples with |u| below it needed.
+    dead_zone_max_v: float = 1.0
+    dead_zone_min_share: float = 0.05
+    #: Longest transport delay searched (s).
+    max_delay_s: float = 0.5
+    #: Rounds of the forward search (one effect accepted per round).
+    max_rounds: int = 4
+
+    def __post_init__(self) -> None:
+        if not 0.3 <= self.fit_share <= 0.9:
+            raise ValueError(f"fit_share must be in [0.3, 0.9], got {self.fit_share}")
+        if not 0 < self.family_alpha < 0.5:
+            raise ValueError(f"family_alpha must be in (0, 0.5), got {self.family_alpha}")
+        positive = ("material_noise_share", "creep_min_tau_s", "hold_min_s", "step_share",
+                    "dead_zone_max_v", "max_delay_s")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.max_rounds < 1 or self.min_holds < 1 or self.min_steps < 1:
+            raise ValueError("max_rounds, min_holds and min_steps must be >= 1")
+
+    def as_dict(self) -> dict:
+        return asdict(self)

@@ -1,0 +1,192 @@
+"""The diagnosis's files: summary.json, report.md, a figure and the models before and after.
+Decides nothing: it writes what :mod:`.search` decided."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..persistence import save_model
+from .candidates import CANDIDATES
+from .results import Diagnosis, Outcome
+
+METRIC = ("free-run RMSE (mm) on the held-out last {held:.0f} % of the record, the model run "
+          "from the record's start on its input alone")
+
+RULE = ("An effect is accepted when the current model with its block, fitted on the same fit "
+        "rows as the current model, has less squared free-run error on the held-out rows: the "
+        "Diebold-Mariano test of the loss differential (HAC variance, Bartlett kernel, bandwidth "
+        "covering the differential's own autocorrelation, Harvey-Leybourne-Newbold factor, "
+        "one-sided), Holm's step-down over the round's candidates at a family-wise {alpha:g}, "
+        "and a mean gain of at least {share:g} x the noise floor squared ({margin:.3g} mm^2). "
+        "A round accepts the passing candidate with the largest gain and the next refits the "
+        "rest around it. A candidate the record cannot test is still fitted as a rival: if it "
+        "would gain the most, nothing is accepted and it is reported undecided, with what to "
+        "record.")
+
+
+def check_report_dir(out_dir) -> Path:
+    """The report folder, refused at once if it is a file or cannot be written."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--report {out} is a file; give a folder (it is created if missing)")
+    out.mkdir(parents=True, exist_ok=True)
+    if not os.access(out, os.W_OK):
+        raise ValueError(f"--report {out} cannot be written")
+    return out
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    with tempfile.NamedTemporaryFile("w", dir=path.parent, delete=False, suffix=".tmp") as f:
+        f.write(text)
+    os.replace(f.name, path)
+
+
+def _finite(x):
+    return float(x) if x is not None and math.isfinite(x) else None
+
+
+def _json_safe(o):
+    if isinstance(o, dict):
+        return {str(k): _json_safe(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple, np.ndarray)):
+        return [_json_safe(v) for v in o]
+    if isinstance(o, np.generic):
+        o = o.item()
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    return o
+
+
+def summary_of(d: Diagnosis, paths: dict) -> dict:
+    c = d.config
+    margin = c.material_noise_share * d.noise_floor_mm ** 2
+    return _json_safe({
+        "effects_found": d.effects_found,
+        "rmse_before_mm": _finite(d.rmse_before_mm),
+        "rmse_after_mm": _finite(d.rmse_after_mm),
+        "noise_floor_mm": d.noise_floor_mm,
+        "metric": METRIC.format(held=100 * (1 - c.fit_share)),
+        "rule": RULE.format(alpha=c.family_alpha, share=c.material_noise_share, margin=margin),
+        "given_model": d.given_model,
+        "candidates": [r.as_dict() for r in d.candidates],
+        "rounds": [{"number": r.number, "rmse_start_mm": r.rmse_start_mm,
+                    "accepted": r.accepted, "results": [x.as_dict() for x in r.results]}
+                   for r in d.rounds],
+        "excitation": d.excitation,
+        "config": c.as_dict(),
+        "seconds": d.seconds,
+        **paths,
+    })
+
+
+def write_report(d: Diagnosis, out_dir, data_label: str = "data") -> dict:
+    """Write summary.json, report.md, residual.png and model_before/after.json to
+    ``out_dir``; return the summary."""
+    out = check_report_dir(out_dir)
+    meta = {"data": data_label, "fit_share": d.config.fit_share, "samples": int(d.u_v.size),
+            "rate_hz": 1.0 / d.model_before.dt_s,
+            "input_range_v": [float(d.u_v.min()), float(d.u_v.max())]}
+    p_before = save_model(d.model_before, out / "model_before.json",
+                          metadata={**meta, "held_out_free_run_rmse_mm": d.rmse_before_mm})
+    p_after = save_model(d.model_after, out / "model_after.json",
+                         metadata={**meta, "held_out_free_run_rmse_mm": d.rmse_after_mm,
+                                   "effects_found": d.effects_found})
+    summary = summary_of(d, {"model_before": str(p_before), "model_after": str(p_after)})
+    _write_atomic(out / "summary.json", json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    fig = _figure(d, out)
+    _write_atomic(out / "report.md", markdown(d, summary, data_label, fig))
+    return summary
+
+
+def _cell(x, fmt: str) -> str:
+    return "-" if x is None else format(x, fmt)
+
+
+def markdown(d: Diagnosis, s: dict, label: str, figure: str | None) -> str:
+    """The report: the record, the rule, each round, what to record next, the thresholds."""
+    ex, c = d.excitation, d.config
+    n, rate = d.u_v.size, 1.0 / d.model_before.dt_s
+    base = "the given model (frozen; blocks fitted around it)" if d.given_model else \
+        "the core GPI model (charging, back-relaxation, path memory; no delay, no creep)"
+    lines = [f"# Residual diagnosis of `{label}`", "",
+             f"{n} samples at {rate:.4g} Hz; fitted on the first {d.cut}, judged on the last "
+             f"{n - d.cut}. Starting model: {base}. Noise floor {d.noise_floor_mm:.4f} mm. "
+             f"Holds of {c.hold_min_s:g} s or more: {ex['holds_fit']} in the fit part, "
+             f"{ex['holds_held']} held out; steps in the fit part: {ex['steps_fit']}. "
+             f"Run time {d.seconds:.1f} s.", "",
+             f"**Effects found: {', '.join(s['effects_found']) or 'none'}.** Held-out "
+             f"free-run RMSE {s['rmse_before_mm']:.4f} mm before, {s['rmse_after_mm']:.4f} mm "
+             f"after ({s['rmse_after_mm'] / d.noise_floor_mm:.1f} x the noise floor).", "",
+             f"Metric: {s['metric']}.", "", f"Decision rule: {s['rule']}", ""]
+    for rnd in d.rounds:
+        lines += [f"## Round {rnd.number} (from {rnd.rmse_start_mm:.4f} mm): "
+                  f"{'accepted ' + rnd.accepted if rnd.accepted else 'nothing accepted'}", "",
+                  "| effect | outcome | RMSE with it (mm) | mean gain (mm^2) | DM p | Holm p | "
+                  "parameters |", "|---|---|---|---|---|---|---|"]
+        for r in rnd.results:
+            ev = r.evidence
+            params = "" if ev is None else ", ".join(
+                f"{k} {_fmt(v)}" for k, v in ev.params.items())
+            lines.append(f"| {r.name} | {r.outcome.value} | "
+                         f"{_cell(ev and ev.rmse_candidate_mm, '.4f')} | "
+                         f"{_cell(ev and ev.test.mean_gain_mm2, '.3g')} | "
+                         f"{_cell(ev and ev.test.p_value, '.2g')} | "
+                         f"{_cell(ev and ev.p_holm, '.2g')} | {params} |")
+        lines += [""] + [f"- {r.name}: {r.reason}." for r in rnd.results] + [""]
+    untestable = [r for r in d.candidates if r.outcome is Outcome.NOT_TESTABLE]
+    if untestable:
+        lines += ["## Not testable on this record", ""]
+        lines += [f"- **{r.name}** ({CANDIDATES[r.name].meaning}): {r.reason}."
+                  for r in untestable] + [""]
+    if figure:
+        lines += [f"![held-out residual before and after]({figure})", ""]
+    lines += ["## Thresholds", "", "| name | value |", "|---|---|"]
+    lines += [f"| {k} | {v} |" for k, v in c.as_dict().items()] + [""]
+    lines += [f"Models: `{Path(s['model_before']).name}` (before), "
+              f"`{Path(s['model_after']).name}` (after; GPI model files, served by "
+              "model_server and inverted by ipmc identify --inverse --effects-from).", ""]
+    return "\n".join(lines)
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, list):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    return str(v)
+
+
+def _figure(d: Diagnosis, out: Path) -> str | None:
+    """The held-out part: measured and both models, and both residuals."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    t = d.t_s[d.cut:]
+    y = d.y_mm[d.cut:]
+    before = d.model_before.simulate(d.u_v)[d.cut:]
+    after = d.model_after.simulate(d.u_v)[d.cut:]
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(9, 5.5), sharex=True)
+    a1.plot(t, y, "k", lw=0.8, label="measured")
+    a1.plot(t, before, lw=0.8, label="before")
+    a1.plot(t, after, lw=0.8, label="after")
+    a1.set_ylabel("tip (mm)")
+    a1.legend(loc="upper right", fontsize=8)
+    a2.plot(t, y - before, lw=0.8, label=f"before, RMSE {d.rmse_before_mm:.4f} mm")
+    a2.plot(t, y - after, lw=0.8, label=f"after, RMSE {d.rmse_after_mm:.4f} mm")
+    a2.set_ylabel("residual (mm)")
+    a2.set_xlabel("time (s)")
+    a2.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "residual.png", dpi=110)
+    plt.close(fig)
+    return "residual.png"

@@ -1,0 +1,124 @@
+"""Typed results of the residual diagnosis: evidence, outcome, rounds, the whole diagnosis."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from enum import StrEnum
+
+import numpy as np
+
+from ..hysteresis import GeneralizedPI
+from .config import DiagnosisConfig
+
+
+class Outcome(StrEnum):
+    ACCEPTED = "accepted"
+    REJECTED = "rejected"
+    NOT_TESTABLE = "not testable"
+
+
+@dataclass(frozen=True)
+class LossTest:
+    """The held-out free-run loss differential d_k = e_current_k^2 - e_candidate_k^2 (mm^2)
+    and its Diebold-Mariano test (HAC variance, one-sided: the candidate has less loss)."""
+
+    mean_gain_mm2: float
+    statistic: float
+    p_value: float
+    bandwidth_samples: int
+    margin_mm2: float
+
+    @property
+    def material(self) -> bool:
+        return self.mean_gain_mm2 >= self.margin_mm2
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """What one candidate showed in one round."""
+
+    rmse_current_mm: float
+    rmse_candidate_mm: float
+    test: LossTest
+    params: dict
+    scan: str = ""
+    p_holm: float = 1.0
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d["material"] = self.test.material
+        return d
+
+
+@dataclass(frozen=True)
+class CandidateResult:
+    """One candidate's outcome in one round, with the reason in one sentence."""
+
+    name: str
+    outcome: Outcome
+    reason: str
+    round: int
+    evidence: Evidence | None = None
+
+    @property
+    def accepted(self) -> bool:
+        return self.outcome is Outcome.ACCEPTED
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "outcome": self.outcome.value, "accepted": self.accepted,
+                "reason": self.reason, "round": self.round,
+                "evidence": None if self.evidence is None else self.evidence.as_dict()}
+
+
+@dataclass(frozen=True)
+class Round:
+    """One round of the search: every candidate's result and the effect it accepted."""
+
+    number: int
+    rmse_start_mm: float
+    results: tuple[CandidateResult, ...]
+    accepted: str | None
+
+
+@dataclass
+class Diagnosis:
+    """The whole diagnosis of one record."""
+
+    t_s: np.ndarray
+    u_v: np.ndarray
+    y_mm: np.ndarray
+    cut: int
+    config: DiagnosisConfig
+    given_model: bool
+    model_before: GeneralizedPI
+    model_after: GeneralizedPI
+    rounds: list[Round] = field(default_factory=list)
+    noise_floor_mm: float = float("nan")
+    seconds: float = 0.0
+    excitation: dict = field(default_factory=dict)
+
+    @property
+    def effects_found(self) -> list[str]:
+        return [r.accepted for r in self.rounds if r.accepted]
+
+    @property
+    def candidates(self) -> list[CandidateResult]:
+        """Each candidate's last result (accepted ones in the round that accepted them)."""
+        last: dict[str, CandidateResult] = {}
+        for rnd in self.rounds:
+            for res in rnd.results:
+                if res.name not in last or not last[res.name].accepted:
+                    last[res.name] = res
+        return list(last.values())
+
+    def held_out_rmse(self, model: GeneralizedPI) -> float:
+        e = model.simulate(self.u_v)[self.cut:] - self.y_mm[self.cut:]
+        return float(np.sqrt(np.mean(e ** 2)))
+
+    @property
+    def rmse_before_mm(self) -> float:
+        return self.held_out_rmse(self.model_before)
+
+    @property
+    def rmse_after_mm(self) -> float:
+        return self.held_out_rmse(self.model_after)

@@ -1,0 +1,158 @@
+"""The forward search: rounds of candidates around the current model, one decision each.
+
+Round r fits every candidate not yet accepted around the current model (both fitted on the
+same fit rows), judges them together by the rule of :mod:`.decision`, and accepts at most one;
+the next round starts from the model with it. The search stops when a round accepts nothing.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..hysteresis import DEFAULT_MEMORY_TAUS_S, GeneralizedPI
+from .candidates import CANDIDATES, Fitted
+from .config import DiagnosisConfig
+from .decision import holm, loss_differential_test, passes
+from .record import DiagnosisRecord
+from .results import CandidateResult, Diagnosis, Evidence, Outcome, Round
+
+
+def core_model(rec: DiagnosisRecord, progress=None) -> GeneralizedPI:
+    """The diagnosis's own model: a GPI with the actuator's fast time scales only (charging,
+    back-relaxation: below ``creep_min_tau_s``), no delay and no optional stage, fitted on the
+    fit rows; the candidates are the stages it leaves out."""
+    taus = tuple(t for t in DEFAULT_MEMORY_TAUS_S if t < rec.config.creep_min_tau_s)
+    return GeneralizedPI(memory_taus_s=taus, delay_s=0.0, dt_s=rec.dt_s,
+                         progress=progress).fit(rec.u_v[rec.fit], rec.y_mm[rec.fit])
+
+
+def _given(model, rec: DiagnosisRecord) -> GeneralizedPI:
+    from ..hysteresis import GpiInverse
+
+    if isinstance(model, GpiInverse):
+        model = model.model
+    if not isinstance(model, GeneralizedPI):
+        raise ValueError(f"a given model must be a GPI model (ipmc identify's default), not "
+                         f"{type(model).__name__}; identify one with ipmc identify --data "
+                         f"FILE --out MODEL")
+    if abs(model.dt_s - rec.dt_s) > 0.01 * rec.dt_s:
+        raise ValueError(f"the model runs at {1 / model.dt_s:.4g} Hz and the record at "
+                         f"{1 / rec.dt_s:.4g} Hz; resample the record or identify a model at "
+                         f"its rate")
+    return model
+
+
+def held_error(model: GeneralizedPI, rec: DiagnosisRecord) -> np.ndarray:
+    """Free-run error (mm) over the held-out rows, the run starting at the record's start."""
+    return model.simulate(rec.u_v)[rec.cut:] - rec.y_mm[rec.cut:]
+
+
+def _rms(e: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(e ** 2)))
+
+
+def _try(name: str, current, rec, given, progress) -> tuple[str | None, Fitted | str]:
+    """(not-testable reason or None, fitted or why it could not be). A candidate the record
+    cannot test is still fitted where it can be: as a rival, it keeps the round from naming
+    another effect for a residual it would explain better."""
+    cand = CANDIDATES[name]
+    why = cand.not_testable(rec, current, given)
+    t0 = time.perf_counter()
+    out = cand.fit(current, rec, given)
+    progress(f"  {name}: fitted in {time.perf_counter() - t0:.1f} s"
+             + ("" if why is None else " (not testable on this record)"))
+    return why, out
+
+
+def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, given: bool,
+              progress) -> tuple[Round, Fitted | None]:
+    """One round: every candidate in ``names`` fitted around ``current`` and judged."""
+    cfg = rec.config
+    e_cur = held_error(current, rec)
+    margin = cfg.material_noise_share * rec.excitation.noise_floor_mm ** 2
+    results, tested, untestable = {}, {}, {}
+    for name in names:
+        why, out = _try(name, current, rec, given, progress)
+        if why is not None:
+            untestable[name] = why
+        if isinstance(out, str):
+            results[name] = (CandidateResult(name, Outcome.NOT_TESTABLE, why, number)
+                             if why is not None else
+                             CandidateResult(name, Outcome.REJECTED, out, number))
+            continue
+        e_new = held_error(out.model, rec)
+        test = loss_differential_test(e_cur, e_new, margin)
+        tested[name] = (out, Evidence(_rms(e_cur), _rms(e_new), test, out.params, out.scan))
+    p_adj = holm({n: ev.test.p_value for n, (_, ev) in tested.items()})
+    passing = [n for n in tested if passes(tested[n][1].test, p_adj[n], cfg.family_alpha)]
+    best = max(passing, key=lambda n: tested[n][1].test.mean_gain_mm2, default=None)
+    for name, (_, ev) in tested.items():
+        ev = Evidence(ev.rmse_current_mm, ev.rmse_candidate_mm, ev.test, ev.params, ev.scan,
+                      p_adj[name])
+        outcome, reason = _verdict(name, ev, best, passing, cfg.family_alpha, untestable)
+        results[name] = CandidateResult(name, outcome, reason, number, ev)
+    accepted = best if best is not None and best not in untestable else None
+    rnd = Round(number, _rms(e_cur), tuple(results[n] for n in names), accepted)
+    return rnd, (tested[accepted][0] if accepted else None)
+
+
+def _verdict(name, ev: Evidence, best, passing, alpha, untestable) -> tuple[Outcome, str]:
+    t = ev.test
+    text = (f"held-out RMSE {ev.rmse_current_mm:.4f} -> {ev.rmse_candidate_mm:.4f} mm, mean "
+            f"gain {t.mean_gain_mm2:.3g} mm^2 (margin {t.margin_mm2:.3g}), DM p = "
+            f"{t.p_value:.2g}, Holm p = {ev.p_holm:.2g}")
+    if name in untestable:
+        what = ("it would explain the residual best: undecided until such a record is made"
+                if name == best else "as a rival only")
+        return Outcome.NOT_TESTABLE, f"{untestable[name]} ({text}; {what})"
+    if name == best:
+        return Outcome.ACCEPTED, text
+    if name in passing:
+        rival = " (not testable on this record)" if best in untestable else ""
+        return Outcome.REJECTED, f"{text}; passed, but {best}{rival} gained more this round"
+    if ev.p_holm > alpha:
+        return Outcome.REJECTED, f"{text}; not significant at {alpha:g} after Holm"
+    return Outcome.REJECTED, f"{text}; significant but below the materiality margin"
+
+
+def diagnose(t_s, u_v, y_mm, *, model=None, config: DiagnosisConfig | None = None,
+             candidates=None, progress=None) -> Diagnosis:
+    """Diagnose one record: the missing effects of ``model`` (another day's GPI, frozen) or
+    of the diagnosis's own core model, by rounds of the one decision rule.
+
+    ``candidates``: names from :data:`CANDIDATES` (default all). ``progress(text)`` hears of
+    each stage.
+    """
+    say = progress or (lambda text: None)
+    t0 = time.perf_counter()
+    cfg = config or DiagnosisConfig()
+    rec = DiagnosisRecord(t_s, u_v, y_mm, cfg)
+    names = list(CANDIDATES if candidates is None else candidates)
+    unknown = [n for n in names if n not in CANDIDATES]
+    if unknown:
+        raise ValueError(f"unknown candidate effects {unknown}; known: {list(CANDIDATES)}")
+    given = model is not None
+    if given:
+        current = _given(model, rec)
+    else:
+        say(f"fitting the core model on the first {rec.cut} samples")
+        current = core_model(rec)
+    d = Diagnosis(rec.t_s, rec.u_v, rec.y_mm, rec.cut, cfg, given, current, current,
+                  noise_floor_mm=rec.excitation.noise_floor_mm,
+                  excitation=rec.excitation.as_dict())
+    for number in range(1, cfg.max_rounds + 1):
+        if not names:
+            break
+        say(f"round {number}: {', '.join(names)}")
+        rnd, fitted = run_round(number, current, rec, names, given, say)
+        d.rounds.append(rnd)
+        if fitted is None:
+            break
+        say(f"round {number}: accepted {rnd.accepted}")
+        current = fitted.model
+        names.remove(rnd.accepted)
+    d.model_after = current
+    d.seconds = time.perf_counter() - t0
+    return d

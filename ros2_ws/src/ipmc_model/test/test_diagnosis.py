@@ -1,0 +1,173 @@
+"""Tests of ipmc_model.diagnosis: the decision rule, the candidates, the search, the report."""
+
+from __future__ import annotations
+
+import copy
+import json
+
+import numpy as np
+import pytest
+
+from ipmc_driver.dataio import Record, save_csv
+from ipmc_driver.plant import IpmcPlant
+from ipmc_driver.signals import random_sine, random_steps
+from ipmc_model.diagnose_cli import main
+from ipmc_model.diagnosis import CANDIDATES, Candidate, DiagnosisConfig, Fitted, Outcome
+from ipmc_model.diagnosis import diagnose as run_diagnosis
+from ipmc_model.diagnosis.decision import holm, loss_differential_test
+from ipmc_model.diagnosis.record import DiagnosisRecord
+from ipmc_model.diagnosis.search import core_model
+from ipmc_model.persistence import load_model
+
+RATE = 50.0
+
+
+def plant_record(effects, seconds: float, seed: int, holds: bool = False) -> Record:
+    """A random sine on random steps (the sine off during every other step with ``holds``)."""
+    _, us = random_sine(seconds, RATE, 2.5, (0.05, 1.0), 8, seed=seed + 2)
+    _, st = random_steps(seconds, RATE, 1.5, (3.0, 10.0), seed=seed + 3)
+    if holds:
+        us = us * (np.cumsum(np.r_[0, np.diff(st) != 0]) % 2 == 0)
+    u = np.clip(0.6 * us + st, -3, 3)
+    run = IpmcPlant(effects=effects, seed=seed, dt_s=1 / RATE).run(u)
+    return Record(run.t_s, u, run.y_mm)
+
+
+def diagnose(rec: Record, **kw):
+    return run_diagnosis(rec.t_s, rec.u_v, rec.y_mm, **kw)
+
+
+def test_loss_differential_test_tells_a_better_model_from_an_equal_one():
+    rng = np.random.default_rng(0)
+    slow = np.convolve(rng.normal(size=4000), np.ones(50) / 50, mode="same")
+    e_cur = slow + 0.01 * rng.normal(size=4000)
+    better = loss_differential_test(e_cur, 0.3 * slow + 0.01 * rng.normal(size=4000), 0.0)
+    other = np.convolve(rng.normal(size=4000), np.ones(50) / 50, mode="same")
+    same = loss_differential_test(e_cur, other + 0.01 * rng.normal(size=4000), 0.0)
+    assert better.p_value < 1e-3 and better.mean_gain_mm2 > 0
+    assert same.p_value > 0.05
+    # the bandwidth follows the differential's autocorrelation (a 50-sample moving average)
+    assert better.bandwidth_samples >= 20
+
+
+def test_loss_differential_test_is_not_significant_on_autocorrelated_noise_too_often():
+    """Under the null (two models equally good, slow errors) the 5 % test rejects about 5 %."""
+    rng = np.random.default_rng(1)
+    rejected = 0
+    for _ in range(200):
+        a = np.convolve(rng.normal(size=2000), np.ones(30) / 30, mode="same")
+        b = np.convolve(rng.normal(size=2000), np.ones(30) / 30, mode="same")
+        rejected += loss_differential_test(a, b, 0.0).p_value < 0.05
+    assert rejected <= 25  # 12.5 %: a naive i.i.d. t test rejects far more on these
+
+
+def test_holm_adjusts_as_the_step_down_defines():
+    adj = holm({"a": 0.01, "b": 0.04, "c": 0.03})
+    assert adj == pytest.approx({"a": 0.03, "c": 0.06, "b": 0.06})
+
+
+def test_config_refuses_thresholds_out_of_range():
+    with pytest.raises(ValueError, match="family_alpha"):
+        DiagnosisConfig(family_alpha=0.7)
+    with pytest.raises(ValueError, match="hold_min_s"):
+        DiagnosisConfig(hold_min_s=0.0)
+
+
+def test_a_clean_record_has_nothing_and_a_dead_zone_is_found_with_its_width():
+    clean = diagnose(plant_record({}, 150.0, 0))
+    assert clean.effects_found == []
+    dz = diagnose(plant_record({"dead_zone": {"width_v": 0.4}}, 150.0, 0))
+    assert dz.effects_found == ["dead_zone"]
+    width = dz.model_after.dead_zone_v
+    assert 0.3 < width < 0.5
+    assert dz.rmse_after_mm < 0.5 * dz.rmse_before_mm
+    assert dz.rmse_after_mm < 2.0 * clean.rmse_after_mm
+
+
+def test_creep_needs_holds_and_is_found_on_them():
+    fx = {"creep": {"tau_s": 12.0, "gain_mm_per_v": -0.6}}
+    moving = diagnose(plant_record(fx, 150.0, 1))
+    creep = next(r for r in moving.candidates if r.name == "creep")
+    assert creep.outcome is Outcome.NOT_TESTABLE and "holds" in creep.reason
+    assert "creep" not in moving.effects_found
+    held = diagnose(plant_record(fx, 150.0, 1, holds=True))
+    assert held.effects_found[:1] == ["creep"]
+    assert held.rmse_after_mm < 0.3 * held.rmse_before_mm
+
+
+def test_a_given_model_gets_the_block_of_what_changed_fitted_around_it():
+    day1 = plant_record({}, 150.0, 2)
+    rec1 = DiagnosisRecord(day1.t_s, day1.u_v, day1.y_mm, DiagnosisConfig())
+    model = core_model(rec1)
+    before = copy.deepcopy(model)
+    day2 = plant_record({"asymmetry": {"negative_gain_ratio": 0.7}}, 150.0, 3)
+    d = diagnose(day2, model=model)
+    assert d.effects_found[:1] == ["asymmetry"]
+    assert d.model_after.negative_gain_ == pytest.approx(0.7, abs=0.12)
+    # the given model itself is not changed, and the held-out error drops
+    assert np.array_equal(before.weights_, model.weights_)
+    assert d.rmse_after_mm < 0.5 * d.rmse_before_mm
+
+
+class GainChange(Candidate):
+    """A toy effect: the whole bending scaled, fitted around a given model."""
+
+    name = "gain_change"
+    meaning = "the bending scaled by a constant (a toy effect for this test)"
+
+    def around(self, model, rec):
+        m = copy.deepcopy(model)
+        y0 = m.simulate(rec.u_v[rec.fit])
+        k = float(y0 @ rec.y_mm[rec.fit] / (y0 @ y0))
+        m.map_coef_ = m.map_coef_ * k
+        return Fitted(m, {"gain": k})
+
+
+def test_a_new_effect_is_one_class_and_one_registry_line():
+    from ipmc_model.diagnosis import register
+
+    register(GainChange)
+    try:
+        day1 = plant_record({}, 120.0, 4)
+        model = core_model(DiagnosisRecord(day1.t_s, day1.u_v, day1.y_mm, DiagnosisConfig()))
+        day2 = plant_record({}, 120.0, 5)
+        day2 = Record(day2.t_s, day2.u_v, 0.8 * day2.y_mm)
+        d = diagnose(day2, model=model, candidates=["gain_change", "drift", "delay"])
+        assert d.effects_found[:1] == ["gain_change"]
+        found = next(r for r in d.candidates if r.name == "gain_change")
+        assert found.evidence.params["gain"] == pytest.approx(0.8, abs=0.05)
+    finally:
+        CANDIDATES.pop("gain_change")
+
+
+def test_cli_writes_the_report_and_a_model_that_runs(tmp_path, capsys):
+    data = save_csv(plant_record({"delay": {"delay_s": 0.2}}, 150.0, 6), tmp_path / "d.csv")
+    out = tmp_path / "report"
+    assert main(["--data", str(data), "--report", str(out)]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert {"effects_found", "rmse_before_mm", "rmse_after_mm", "metric", "candidates",
+            "model_before", "model_after", "rule", "config"} <= set(s)
+    assert s["effects_found"][:1] == ["delay"]
+    after = load_model(s["model_after"])
+    assert abs(after.delay_samples_ * after.dt_s - 0.2) <= 0.04
+    report = (out / "report.md").read_text()
+    assert "Diebold-Mariano" in report and "| delay | accepted |" in report
+    assert "effects found: delay" in capsys.readouterr().out
+
+
+def test_cli_refuses_a_report_path_that_is_a_file_before_any_work(tmp_path, capsys):
+    f = tmp_path / "file"
+    f.write_text("x")
+    assert main(["--data", str(tmp_path / "missing.csv"), "--report", str(f)]) == 1
+    assert "is a file" in capsys.readouterr().err
+
+
+def test_cli_refuses_a_given_model_that_is_not_gpi(tmp_path, capsys):
+    from ipmc_model.persistence import save_model
+    from ipmc_model.play import PrandtlIshlinskii
+
+    rec = plant_record({}, 60.0, 7)
+    data = save_csv(rec, tmp_path / "d.csv")
+    pi = save_model(PrandtlIshlinskii(n_operators=4).fit(rec.u_v, rec.y_mm), tmp_path / "pi")
+    assert main(["--data", str(data), "--model", str(pi), "--report", str(tmp_path / "r")]) == 1
+    assert "GPI model" in capsys.readouterr().err
