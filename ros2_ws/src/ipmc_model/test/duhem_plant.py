@@ -16,9 +16,10 @@ RESOLUTION_MM = 0.01
 NOISE_FLOOR_MM = float(np.hypot(NOISE_STD_MM, RESOLUTION_MM / np.sqrt(12.0)))
 
 
-def duhem_plant(u_v, seed: int = 0, dt_s: float = 0.01, delay_samples: int = 4) -> np.ndarray:
+def duhem_plant(u_v, seed: int = 0, dt_s: float = 0.01, delay_samples: int = 4,
+                creep_share: float = 0.15) -> np.ndarray:
     """Measured displacement (mm) of the Duhem actuator for the voltage ``u_v`` (V), its drive
-    delayed by ``delay_samples``."""
+    delayed by ``delay_samples``, its 8 s relaxation (a creep) of ``creep_share``."""
     u = np.concatenate([np.zeros(delay_samples), np.asarray(u_v, float)])[:len(u_v)]
     h, out = 0.0, np.empty(u.size)
     prev = 0.0
@@ -31,7 +32,7 @@ def duhem_plant(u_v, seed: int = 0, dt_s: float = 0.01, delay_samples: int = 4) 
         out[k] = h
     a1, a2 = np.exp(-dt_s / 0.8), np.exp(-dt_s / 8.0)
     x = (out - 0.4 * lfilter([1 - a1], [1, -a1], out)
-         + 0.15 * lfilter([1 - a2], [1, -a2], out))
+         + creep_share * lfilter([1 - a2], [1, -a2], out))
     y = 1.6 * x + 0.22 * x * np.abs(x) - 0.05 * x ** 3
     y = 6.0 * np.tanh(y / 6.0)
     rng = np.random.default_rng(seed)

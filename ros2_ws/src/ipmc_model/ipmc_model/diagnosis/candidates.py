@@ -301,6 +301,11 @@ class Drift(Candidate):
         return Fitted(m, _drift_params(m))
 
 
+#: The shortest delay a record can show: the drive's zero-order hold and the sensor's sampling
+#: each shift the response by up to half a sample, so one sample is within the sampling itself.
+MIN_DELAY_SAMPLES = 2
+
+
 @register
 class Delay(Candidate):
     name = "delay"
@@ -314,7 +319,7 @@ class Delay(Candidate):
         u = dead_zone(rec.u_v[rec.fit], model.dead_zone_v)
         d = estimate_delay(u, rec.y_mm[rec.fit], rec.dt_s, model.memory_taus_s_,
                            int(round(c.max_delay_s / rec.dt_s)))
-        lo, hi = model.delay_samples_ + 1, int(round(c.max_delay_s / rec.dt_s))
+        lo, hi = model.delay_samples_ + MIN_DELAY_SAMPLES, int(round(c.max_delay_s / rec.dt_s))
         d, scan = descend_delay(model, rec, max(d, lo), lo, hi)
         m = refit_with(model, rec, delay_s=d * rec.dt_s)
         return Fitted(m, {"delay_s": d * rec.dt_s}, scan)
@@ -324,7 +329,7 @@ class Delay(Candidate):
 
         best, best_sse = 0, fit_sse(model, rec)
         m = copy.deepcopy(model)
-        for d in range(1, int(round(rec.config.max_delay_s / rec.dt_s)) + 1):
+        for d in range(MIN_DELAY_SAMPLES, int(round(rec.config.max_delay_s / rec.dt_s)) + 1):
             m.delay_samples_ = model.delay_samples_ + d
             s = fit_sse(m, rec)
             if s < best_sse:
@@ -377,10 +382,15 @@ class RateDependence(Candidate):
                "with the migrating cations): loops widen with frequency")
 
     def not_testable(self, rec, model, given):
+        if not given:
+            return ("without a given model the core's fastest relaxation (0.05 s) beside the "
+                    "charge already spans the charging current (v - x_0.05 ~ 0.05 dv/dt), so "
+                    "a channel for it cannot be told apart; give another day's model "
+                    "(--model) to see a rate dependence appear")
         return fast_input_reason(rec, model, "rate-dependent bending")
 
     def refit(self, model, rec):
-        return Fitted(refit_with(model, rec, rate_channel=True), {"channel": "dv/dt"})
+        return "fitted only around a given model"
 
     def around(self, model, rec):
         if model.rate_channel:
