@@ -1,7 +1,7 @@
 """Benchmark of ``ipmc diagnose``: the acceptance table of the residual diagnosis, and its wall
 time on 30 000 samples. Prints figures; not part of the pass/fail suite.
 
-    .venv/bin/python benchmarks/bench_diagnose.py acceptance [--jobs 2]
+    .venv/bin/python benchmarks/bench_diagnose.py acceptance [--jobs 2] [--seed-offset N]
     .venv/bin/python benchmarks/bench_diagnose.py design [--jobs 2]
     .venv/bin/python benchmarks/bench_diagnose.py timing
 
@@ -245,11 +245,15 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("section", choices=("acceptance", "design", "timing"))
     p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--seed-offset", type=int, default=0,
+                   help="shift every seed of the set: fresh records of the same kinds and sizes")
     a = p.parse_args()
     if a.section == "timing":
         timing()
     else:
         cases = ACCEPTANCE if a.section == "acceptance" else DESIGN
+        cases = [Case(c.plant, c.holds, c.effects, c.given, c.seed + a.seed_offset)
+                 for c in cases]
         print(f"{a.section} set: {len(cases)} records")
         table(cases, a.jobs)
 

@@ -36,6 +36,10 @@ class DiagnosisConfig:
     dead_zone_min_share: float = 0.05
     #: Longest transport delay searched (s).
     max_delay_s: float = 0.5
+    #: Held-out samples within this time after the voltage left the fit part's range are not
+    #: judged: the charge and the back-relaxation (time constants <= 0.5 s) carry the
+    #: excursion for a few of their time constants.
+    settle_s: float = 2.0
     #: Rounds of the forward search (one effect accepted per round).
     max_rounds: int = 4
 

@@ -3,13 +3,14 @@
 A candidate block is accepted when adding it to the current model (both fitted on the same
 fit rows) lowers the held-out free-run squared error significantly and materially:
 
-* the loss differential ``d_k = e_cur_k^2 - e_new_k^2`` over the held-out samples is tested by
+* the loss differential ``d_k = e_cur_k^2 - e_new_k^2`` over the held-out samples (those
+  within the fit part's voltage range, :attr:`DiagnosisRecord.judged`) is tested by
   Diebold-Mariano: its mean over a HAC (Bartlett, Newey-West) standard error, with the
   Harvey-Leybourne-Newbold small-sample factor, one-sided against Student's t; the bandwidth
   covers the differential's own autocorrelation (a free-run error is slow, so its samples are
   far from independent);
 * the round's p-values are adjusted by Holm's step-down, holding the family-wise error of
-  all the round's candidates at ``family_alpha``;
+  the candidates the round may accept (the testable ones) at ``family_alpha``;
 * the mean gain must be at least ``material_noise_share`` times the noise floor squared.
 
 Of the candidates that pass, the round accepts the one with the largest mean gain; the next

@@ -26,6 +26,7 @@ class Excitation:
     u_min_v: float
     u_max_v: float
     noise_floor_mm: float
+    judged_share: float
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -49,6 +50,7 @@ class DiagnosisRecord:
             raise ValueError("the input is constant: nothing can be identified from it")
         self.config = config
         self.cut = int(round(config.fit_share * self.u_v.size))
+        self.judged = self._judged()
         self.excitation = self._excitation()
 
     @property
@@ -70,7 +72,18 @@ class DiagnosisRecord:
             steps_fit=int(np.sum(jumps[1:] & ~jumps[:-1]) + (jumps[0] if jumps.size else 0)),
             near_zero_share=float(np.mean(np.abs(u[:self.cut]) < c.dead_zone_max_v)),
             u_min_v=float(u.min()), u_max_v=float(u.max()),
-            noise_floor_mm=noise_floor(self.y_mm))
+            noise_floor_mm=noise_floor(self.y_mm), judged_share=float(self.judged.mean()))
+
+    def _judged(self) -> np.ndarray:
+        """Held-out rows the decision uses: those whose voltage stayed within the fit part's
+        range for the last ``settle_s`` (beyond it every model extrapolates, and a block can
+        win there by extrapolating differently, not by being the effect)."""
+        lo, hi = self.u_v[:self.cut].min(), self.u_v[:self.cut].max()
+        out = ((self.u_v < lo) | (self.u_v > hi)).astype(float)
+        n = max(1, int(round(self.config.settle_s / self.dt_s)))
+        recent = np.convolve(out, np.ones(n), mode="full")[:out.size] > 0
+        judged = ~recent[self.cut:]
+        return judged if judged.mean() >= 0.5 else np.ones_like(judged)
 
     def power_share_above(self, f_hz: float) -> float:
         """Share of the fit part's input power (mean removed) above ``f_hz``."""

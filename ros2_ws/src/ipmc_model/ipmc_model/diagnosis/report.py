@@ -19,10 +19,12 @@ METRIC = ("free-run RMSE (mm) on the held-out last {held:.0f} % of the record, t
           "from the record's start on its input alone")
 
 RULE = ("An effect is accepted when the current model with its block, fitted on the same fit "
-        "rows as the current model, has less squared free-run error on the held-out rows: the "
+        "rows as the current model, has less squared free-run error on the held-out rows "
+        "(those within the fit part's voltage range for the last {settle:g} s): the "
         "Diebold-Mariano test of the loss differential (HAC variance, Bartlett kernel, bandwidth "
         "covering the differential's own autocorrelation, Harvey-Leybourne-Newbold factor, "
-        "one-sided), Holm's step-down over the round's candidates at a family-wise {alpha:g}, "
+        "one-sided), Holm's step-down over the round's testable candidates at a family-wise "
+        "{alpha:g}, "
         "and a mean gain of at least {share:g} x the noise floor squared ({margin:.3g} mm^2). "
         "A round accepts the passing candidate with the largest gain and the next refits the "
         "rest around it. A candidate the record cannot test is still fitted as a rival: if it "
@@ -72,7 +74,8 @@ def summary_of(d: Diagnosis, paths: dict) -> dict:
         "rmse_after_mm": _finite(d.rmse_after_mm),
         "noise_floor_mm": d.noise_floor_mm,
         "metric": METRIC.format(held=100 * (1 - c.fit_share)),
-        "rule": RULE.format(alpha=c.family_alpha, share=c.material_noise_share, margin=margin),
+        "rule": RULE.format(alpha=c.family_alpha, share=c.material_noise_share, margin=margin,
+                            settle=c.settle_s),
         "given_model": d.given_model,
         "candidates": [r.as_dict() for r in d.candidates],
         "rounds": [{"number": r.number, "rmse_start_mm": r.rmse_start_mm,

@@ -45,8 +45,9 @@ def _given(model, rec: DiagnosisRecord) -> GeneralizedPI:
 
 
 def held_error(model: GeneralizedPI, rec: DiagnosisRecord) -> np.ndarray:
-    """Free-run error (mm) over the held-out rows, the run starting at the record's start."""
-    return model.simulate(rec.u_v)[rec.cut:] - rec.y_mm[rec.cut:]
+    """Free-run error (mm) over the judged held-out rows (within the fit part's voltage
+    range), the run starting at the record's start."""
+    return (model.simulate(rec.u_v)[rec.cut:] - rec.y_mm[rec.cut:])[rec.judged]
 
 
 def _rms(e: np.ndarray) -> float:
@@ -85,7 +86,9 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
         e_new = held_error(out.model, rec)
         test = loss_differential_test(e_cur, e_new, margin)
         tested[name] = (out, Evidence(_rms(e_cur), _rms(e_new), test, out.params, out.scan))
-    p_adj = holm({n: ev.test.p_value for n, (_, ev) in tested.items()})
+    # the family is the candidates the round may accept; rivals are tested beside it
+    p_adj = holm({n: ev.test.p_value for n, (_, ev) in tested.items() if n not in untestable})
+    p_adj.update({n: ev.test.p_value for n, (_, ev) in tested.items() if n in untestable})
     passing = [n for n in tested if passes(tested[n][1].test, p_adj[n], cfg.family_alpha)]
     best = max(passing, key=lambda n: tested[n][1].test.mean_gain_mm2, default=None)
     for name, (_, ev) in tested.items():
