@@ -22,7 +22,7 @@ misses (a 100 Hz tick later than 1.5 periods after the previous one, wall clock)
 time including the publish; and the intervals between
 ``/ipmc/command`` messages as a subscriber receives them.
 
-Goals (issue 5): p99 <= 200 us per step; deadline misses < 0.1 %. Prints tables; not part of
+Goals: p99 <= 200 us per step; deadline misses < 0.1 %. Prints tables; not part of
 the pass/fail suite.
 
     .venv/bin/python benchmarks/bench_controller.py [--steps 20000] [--model FILE]

@@ -12,7 +12,7 @@ The LSSVM-NARX recipe is the long-record one of docs/models.md: lags 6/6 at a fi
 500 prototypes above 2000 rows, exact below), holdout validation on 3000 samples. The
 KernelRidge anchor fits the same rows (all of them, 70/30 holdout).
 
-Goal (issue 4): 60 000 samples tuned and fitted in <= 120 s on a 2-core machine, < 2 GB.
+Goal: 60 000 samples tuned and fitted in <= 120 s, < 2 GB.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Feedforward from the inverse LSSVM-NARX vs from the inverted FORWARD model (issue 5).
+"""Feedforward from the inverse LSSVM-NARX vs from the inverted FORWARD model .
 
     .venv/bin/python scripts/forward_inversion_experiment.py --out-dir build/forward_inversion
 

@@ -1,4 +1,4 @@
-"""Produce the numbers of docs/models.md (issue 4 must-shows 1-3).
+"""Produce the numbers of docs/models.md (the paper's models on its validation sets).
 
     .venv/bin/python scripts/model_experiments.py paper   [--budget 10x10] [--json OUT]
     .venv/bin/python scripts/model_experiments.py boucwen [--budget 10x10] [--json OUT]

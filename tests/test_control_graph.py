@@ -1,4 +1,4 @@
-"""The control graph as separate processes over real DDS (issue 5, must-show 3).
+"""The control graph as separate processes over real DDS.
 
 sim_plant, reference, controller and the real model_server (serving a small inverse LSSVM-NARX
 fitted here on 30 s of the simulated plant, fixed-size LSSVM with 200 centres) run as processes:

@@ -1,4 +1,4 @@
-"""sim_plant and recorder as separate processes over real DDS (issue 2 must-show)."""
+"""sim_plant and recorder as separate processes over real DDS."""
 
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 KeyboardInterrupt, also while messages pour in: the signal is noted by its handler and raised
 between callbacks (``node_runtime.StopSignals``), never inside rclpy's C++ message conversion,
 which turned it into "RuntimeError: Unable to convert call argument" and exit 2, or into an
-"Exception ignored" in a ``__del__`` and a process that ran on. Session 17, longer loops
+"Exception ignored" in a ``__del__`` and a process that ran on. Longer loops
 (/tmp scripts): a probe like this one with the signal raised in the handler failed on 24 of
 84 runs (23 exited 2, 1 ran on); this probe, with ``StopSignals``, on 0 of 100."""
 

@@ -144,7 +144,7 @@ def creep_feedforwards(tmp_path_factory) -> dict:
 
 
 def test_track_with_the_creep_undone_holds_closer(creep_feedforwards, tmp_path, capsys):
-    """Issue 6, back into control from the command line: the -3 mm hold on the plant with its
+    """Back into control from the command line: the -3 mm hold on the plant with its
     creep, with the feedforward that undoes the creep, against the plain inverse's."""
     import numpy as np
 
@@ -273,7 +273,7 @@ def test_track_graph_stopped_by_sigterm_stops_its_nodes(inverse_file, ros_env, t
     import signal
     import time
 
-    # its output is kept for the failure message: once (session 16) it exited 2, not 143,
+    # its output is kept for the failure message: it once exited 2, not 143,
     # after stopping its nodes; the cause, a SIGTERM raised inside rclpy's message conversion,
     # is tested under load in test_stop_signals.py
     out = tmp_path / "track.out"

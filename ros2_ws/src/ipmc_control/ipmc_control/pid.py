@@ -46,7 +46,7 @@ DEFAULT_TD_S = 0.13
 # N = 3, not the textbooks' 10: with the laser's 0.01 mm noise, TD = 0.13 s and N = 10 put a
 # 0.12 V (std) ripple on the command; near the 3 V limit its peaks clip, back-calculation then
 # bleeds the integrator and a hold kept a -0.023 mm offset (-4 mm hold after the rise: 0.14 mm).
-# N = 3: 0.04 V ripple; every tracking cell of docs/control.md improved (session 5).
+# N = 3: 0.04 V ripple; every tracking cell of docs/control.md improved.
 DEFAULT_N = 3.0
 #: Output limit of the rig's H-bridge, V.
 DEFAULT_U_LIMIT_V = 3.0

@@ -98,7 +98,7 @@ def reach_warning(model, reference: str, duration_s: float | None = None) -> str
     any of them over ``duration_s`` (default: the reference's run); None within them, or for
     another feedforward. There the inverse extrapolates: a feedforward with the creep undone
     identified on steps up to 2.5 V held -4 mm worse than the plain one, and better on steps
-    up to 3 V (docs/diagnose.md, session 40)."""
+    up to 3 V (docs/control.md)."""
     from ipmc_model.narx import out_of_reach, reach_mm
 
     held = REFERENCE_KIND[reference] == "constant"

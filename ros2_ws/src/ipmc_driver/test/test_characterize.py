@@ -1,4 +1,4 @@
-"""The default simulated plant reproduces the paper's Table 1 (issue 2 calibration contract)."""
+"""The default simulated plant reproduces the paper's Table 1 (the calibration contract)."""
 
 import json
 

@@ -103,8 +103,8 @@ class ForwardInversionFeedforward:
     Cost per step: ``grid``: (grid_points + refine_points) * horizon_samples kernel rows,
     batched, plus one to advance the model; ``auto`` where the series applies: one kernel
     exponential per centre and one (SERIES_TERMS + 1) x centres matrix-vector product (on an
-    800-centre model, step + record_applied 66 us against 105 us for session 5's version with
-    its powers of B_j formed each step, best of 5 x 3000 steps on a loaded 2-core machine;
+    800-centre model, step + record_applied 66 us against 105 us for a version with
+    its powers of B_j formed each step, best of 5 x 3000 steps;
     the grid about 600 / 1100 us p50 / p99).
     """
 

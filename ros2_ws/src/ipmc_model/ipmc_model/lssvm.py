@@ -124,7 +124,7 @@ class _KernelExpansion:
             )
         # predict_one's exponent, a block of rows at a time: a block that stays in cache runs
         # 30 000 rows of a 1500-centre model in 0.08 s, against 0.19 s for 8192-row blocks of
-        # rbf_kernel and 0.17 s for 30 000 predict_one calls (one BLAS thread; session 33)
+        # rbf_kernel and 0.17 s for 30 000 predict_one calls (one BLAS thread)
         rows = int(chunk_size or _BLOCK_ROWS)
         n = X.shape[0]
         out = np.empty(n)

@@ -359,7 +359,7 @@ class NarxCommittee:
     errors on input they were not fitted on. So the mean of their outputs errs less than any
     one of them. On 24 clean records of the simulated plant, three nonlinear FIR models with
     1.2, 1.8 and 2.4 s windows gave a held-out free-run RMSE 24 % lower in sum than the single
-    1.2 s model, and lower on 22 of the 24 (docs/diagnose.md, session 32).
+    1.2 s model, and lower on 22 of the 24 (a committee of three windows).
 
     ``fit``, ``predict``, ``simulate`` and ``stepper`` work as :class:`NarxModel`'s and give
     the members' mean. Every member sees the same input channels, and none may build voltage

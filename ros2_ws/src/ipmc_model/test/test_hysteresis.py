@@ -207,3 +207,51 @@ def test_inverse_with_a_delay_goes_on_from_a_history_as_from_its_own_steps():
     b = inv.stepper(u_history=applied)
     np.testing.assert_allclose([a.step(r) for r in y_ref[300:320]],
                                [b.step(r) for r in y_ref[300:320]], atol=1e-6)
+
+
+def test_travel_bank_is_the_recursion_and_still_while_the_input_holds():
+    from ipmc_model.hysteresis import travel_bank
+
+    rng = np.random.default_rng(0)
+    v = np.concatenate([np.cumsum(rng.normal(0, 0.1, 300)), np.full(100, 1.0)])
+    out, last = travel_bank(v, (0.5, 4.0))
+    x = np.zeros(2)
+    prev = 0.0
+    for k, vk in enumerate(v):
+        a = np.exp(-abs(vk - prev) / np.array([0.5, 4.0]))
+        x = a * x + (1 - a) * vk
+        prev = vk
+        assert np.allclose(out[k], x, atol=1e-12)
+    assert np.allclose(last, x)
+    assert np.allclose(out[301:], out[301])  # a hold: no travel, no change
+
+
+def test_optional_stages_step_as_they_simulate_and_survive_the_file(tmp_path):
+    """Dead zone, fixed delay, drift, creep relaxations after the map and the output stage:
+    the stepper equals the free run (also going on from a history), the inverse is exact to
+    the model, and the model file keeps them all."""
+    _, u = mixed(120.0, 50.0, 3.0, band_hz=(0.02, 0.8), seed=4)
+    y = IpmcPlant(effects={"dead_zone": {}, "creep": {}}, seed=4, dt_s=0.02).run(u).y_mm
+    m = GeneralizedPI(dt_s=0.02, memory_taus_s=(0.05, 0.45, 4.0), dead_zone_v=0.3,
+                      delay_s=0.0, drift=True, output_taus_s=(12.0,),
+                      max_nfev=8).fit(u[:4000], y[:4000])
+    m.negative_gain_, m.limit_mm_ = 0.9, 9.0
+    ys = m.simulate(u)
+    st = m.stepper()
+    assert np.allclose([st.step(v) for v in u], ys, atol=1e-9)
+    st = m.stepper(u[:3000])
+    assert np.allclose([st.step(v) for v in u[3000:]], ys[3000:], atol=1e-9)
+    target = 0.8 * ys[:600]
+    assert np.sqrt(np.mean((m.simulate(m.inverse().simulate(target)) - target) ** 2)) < 1e-6
+    loaded = load_model(save_model(m, tmp_path / "m.json"))
+    assert np.allclose(loaded.simulate(u), ys)
+    assert (loaded.dead_zone_v, loaded.output_taus_s, loaded.limit_mm_) == (0.3, (12.0,), 9.0)
+
+
+def test_the_charging_current_channel_steps_as_it_simulates():
+    _, u = mixed(60.0, 50.0, 3.0, band_hz=(0.02, 0.8), seed=5)
+    y = IpmcPlant(effects={"rate_dependence": {}}, seed=5, dt_s=0.02).run(u).y_mm
+    m = GeneralizedPI(dt_s=0.02, memory_taus_s=(0.05, 0.45), rate_channel=True,
+                      max_nfev=8).fit(u, y)
+    st = m.stepper()
+    assert np.allclose([st.step(v) for v in u], m.simulate(u), atol=1e-9)
