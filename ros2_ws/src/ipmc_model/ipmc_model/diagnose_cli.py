@@ -18,7 +18,7 @@ from .diagnosis.report import check_report_dir, write_report
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="ipmc diagnose",
-        description="Fit a model on the first 70 %% of a record, find the physical effects it "
+        description="Fit a model on the first 70 % of a record, find the physical effects it "
                     "lacks (creep, drift, delay, dead zone, ...) by their held-out free-run "
                     "gain, and report the error before and after.")
     p.add_argument("--data", required=True, help="t,u,y CSV file (s, V, mm) or rosbag2 folder")

@@ -42,6 +42,7 @@ actuator's limits allow.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections import deque
@@ -747,13 +748,25 @@ class GpiInverseStepper:
         self._fwd = GpiStepper(inverse.model, u_history)
         self._before = None
 
+    def _arrival(self) -> GpiStepper:
+        """The model as it will be when a voltage sent now reaches the charge: the voltages
+        already in the transport delay applied first (without this the search answers the
+        lag of its own earlier voltages, and the loop through the delay oscillates)."""
+        if not self._fwd._queue:
+            return self._fwd
+        ahead = copy.copy(self._fwd)
+        for x in list(self._fwd._queue):
+            ahead.advance(x)
+        return ahead
+
     def step(self, y_desired_mm: float) -> float:
         """Desired displacement (mm) -> feedforward voltage (V); advances the model."""
         lim = self._inv.u_max_v
         grid = np.linspace(-lim, lim, INVERSE_GRID_POINTS)
         y_target = float(y_desired_mm)
+        ahead = self._arrival()
         for _ in range(INVERSE_REFINE_ROUNDS + 1):
-            err = self._fwd.outputs(grid) - y_target
+            err = ahead.outputs(grid) - y_target
             i, j = _bracket(err)
             lo, hi, e_lo, e_hi = grid[i], grid[j], err[i], err[j]
             if i == j:
@@ -761,17 +774,18 @@ class GpiInverseStepper:
             grid = np.linspace(lo, hi, 9)
         x = lo if i == j or e_hi == e_lo else lo - e_lo * (hi - lo) / (e_hi - e_lo)
         x = float(np.clip(x, -lim, lim))
-        self._before = self._fwd.state
-        self._fwd.advance(x)
         # the voltage whose dead-zoned value is x (the dead zone's edge for x = 0)
         w = self._inv.model.dead_zone_v
-        return float(np.clip(x + math.copysign(w, x) if x != 0.0 else 0.0, -lim, lim))
+        u = float(np.clip(x + math.copysign(w, x) if x != 0.0 else 0.0, -lim, lim))
+        self._before = (self._fwd.state, deque(self._fwd._queue))
+        self._fwd.step(u)
+        return u
 
     def record_applied(self, u_applied_v: float) -> None:
         """Advance the model's state by the applied voltage instead of the returned one."""
         if self._before is not None:
             # the applied voltage reaches the charge after the transport delay, as in reset()
-            self._fwd.state = self._before
+            self._fwd.state, self._fwd._queue = self._before[0], deque(self._before[1])
             self._fwd.step(float(u_applied_v))
 
 

@@ -194,6 +194,21 @@ def _print_metrics(result: dict, label: str) -> None:
     print(f"({result['samples_skipped']} initial samples skipped: the model's lags)")
 
 
+#: A model that explains less than half of its own record's variance in free run (fit % is
+#: 100 (1 - |e| / |y - mean y|)) is not one to control with.
+POOR_FIT_PERCENT = 50.0
+
+
+def _warn_poor_training_fit(result: dict) -> None:
+    fit = result["free_run"]["fit_percent"]
+    if fit < POOR_FIT_PERCENT:
+        print(f"warning: the model reproduces its own record at a free-run fit of {fit:.1f} % "
+              f"(below {POOR_FIT_PERCENT:g} %): do not use it as a feedforward. For an "
+              "inverse this means the forward model cannot be inverted on this record (e.g. "
+              "a transport delay the fit took for dynamics); try ipmc diagnose on the record, "
+              "then --effects-from its model_after.json", file=sys.stderr)
+
+
 def _identify_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="ipmc identify",
@@ -320,6 +335,7 @@ def identify_main(argv: list[str] | None = None) -> int:
         else:
             path = save_model(model, args.out, metadata=meta)
         _print_metrics(result, "training")
+        _warn_poor_training_fit(result)
         print(f"model written to {path}")
     except ValueError as exc:  # DataError, ModelFileError and bad inputs are ValueErrors
         print(f"ipmc identify: error: {exc}", file=sys.stderr)
