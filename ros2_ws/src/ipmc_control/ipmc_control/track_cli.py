@@ -149,15 +149,10 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     from geometry_msgs.msg import PointStamped
     from rclpy.qos import QoSProfile, QoSReliabilityPolicy
 
-    from ipmc_driver.dataio import (
-        DISPLACEMENT_TYPE,
-        VOLTAGE_TYPE,
-        read_stamped_series,
-        stamp_ns,
-    )
+    from ipmc_driver.dataio import stamp_ns
     from ipmc_driver.node_runtime import StopSignals
 
-    from .bringup import Graph, NodeSpec, graph_specs
+    from .bringup import Graph
 
     env = dict(os.environ)
     env.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
@@ -165,21 +160,7 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
     work = Path(tempfile.mkdtemp(prefix="ipmc_track_"))
     bag = work / "bag"
-    specs = graph_specs(rig_port=None, lockstep=True, model=model_path if mode != "pid" else None,
-                        mode=mode, reference=REFERENCE_KIND[reference], plant_effects=effects,
-                        record=str(bag), rate_hz=RATE_HZ)
-    for spec in specs:
-        if spec.name == "reference":
-            spec.params.update(REFERENCE_PARAMS[reference])
-            spec.params["min_subscribers"] += 1    # this probe listens too
-        # Lock-step means every sample waits for its command, and every command for its inputs:
-        # on a loaded machine a process can stall for more than the defaults (0.2 s, 0.05 s),
-        # and a plant stepping on without the command is no longer the in-process loop.
-        if spec.name == "sim_plant":
-            spec.params["lockstep_timeout_s"] = LOCKSTEP_WAIT_S
-            spec.params["lockstep_min_subscribers"] += 1    # this probe listens too
-        if spec.name == "controller":
-            spec.params["pair_wait_s"] = LOCKSTEP_WAIT_S
+    specs = _probe_specs(model_path, reference, mode, effects, bag)
     timeout_s = timeout_s or 90.0 + 3.0 * duration_s
     context = rclpy.Context()
     # rclpy's own SIGINT handler only shuts the context down, and the wait loop below then never
@@ -216,31 +197,7 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     stop = StopSignals()
     try:
         with Graph(env, work / "logs") as graph:
-            plant_spec: NodeSpec = next(s for s in specs if s.name == "sim_plant")
-            for spec in specs:
-                if spec is not plant_spec:
-                    graph.start(spec)
-            need_ff = mode != "pid"
-            # Every listener the run has, this probe included (graph_specs counts them): a
-            # recorder missing from the graph here once matched 0.5 s of simulated time late
-            # and lost it.
-            n_listen = plant_spec.params["lockstep_min_subscribers"]
-            n_ff = len({s.name for s in specs} & {"controller", "recorder"})
-            spin_until(lambda: node.count_subscribers("/ipmc/displacement") >= n_listen
-                       and node.count_subscribers("/ipmc/reference") >= n_listen
-                       and node.count_publishers("/ipmc/reference") >= 1
-                       and (not need_ff or (node.count_publishers("/ipmc/feedforward") >= 1
-                                            and node.count_subscribers("/ipmc/feedforward")
-                                            >= n_ff)),
-                       30.0, "the graph's nodes to come up")
-            # This probe sees every node; let the nodes see each other too (the controller
-            # must know model_server is there to wait for its first feedforward).
-            time.sleep(DISCOVERY_SETTLE_S)
-            stop.raise_if_signalled()
-            # The plant's clock starts only when it has matched every listener (DDS matches,
-            # not the graph's list: lockstep_min_subscribers): a late match would cut the
-            # start of the recording.
-            plant_spec.params["lockstep_min_clock_subscribers"] = node.count_subscribers("/clock")
+            plant_spec = _bring_up(graph, specs, node, spin_until, stop, mode)
             graph.start(plant_spec)
             print(f"graph up in {time.monotonic() - t_wall:.1f} s; running {duration_s:g} s "
                   "of simulated time (lock-step)", file=log, flush=True)
@@ -254,6 +211,68 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
         node.destroy_node()
         rclpy.try_shutdown(context=context)
     stop.raise_if_signalled()    # one that came while the graph stopped at the end of the run
+    _warn_from_logs(work, mode, exits, log)
+    summary, n = _summary_from_bag(bag, first_ref[0], duration_s)
+    print(f"graph run: {n} samples in {time.monotonic() - t_wall:.1f} s wall; "
+          f"bag {bag}", file=log)
+    return summary
+
+
+def _bring_up(graph, specs, node, spin_until, stop, mode: str):
+    """Start every node but the plant, wait until each listener is matched, then ready the
+    plant's clock for them; returns the plant's spec (started by the caller)."""
+    plant_spec = next(s for s in specs if s.name == "sim_plant")
+    for spec in specs:
+        if spec is not plant_spec:
+            graph.start(spec)
+    need_ff = mode != "pid"
+    # Every listener the run has, this probe included (graph_specs counts them): a
+    # recorder missing from the graph here once matched 0.5 s of simulated time late
+    # and lost it.
+    n_listen = plant_spec.params["lockstep_min_subscribers"]
+    n_ff = len({s.name for s in specs} & {"controller", "recorder"})
+    spin_until(lambda: node.count_subscribers("/ipmc/displacement") >= n_listen
+               and node.count_subscribers("/ipmc/reference") >= n_listen
+               and node.count_publishers("/ipmc/reference") >= 1
+               and (not need_ff or (node.count_publishers("/ipmc/feedforward") >= 1
+                                    and node.count_subscribers("/ipmc/feedforward")
+                                    >= n_ff)),
+               30.0, "the graph's nodes to come up")
+    # This probe sees every node; let the nodes see each other too (the controller
+    # must know model_server is there to wait for its first feedforward).
+    time.sleep(DISCOVERY_SETTLE_S)
+    stop.raise_if_signalled()
+    # The plant's clock starts only when it has matched every listener (DDS matches,
+    # not the graph's list: lockstep_min_subscribers): a late match would cut the
+    # start of the recording.
+    plant_spec.params["lockstep_min_clock_subscribers"] = node.count_subscribers("/clock")
+    return plant_spec
+
+
+def _probe_specs(model_path, reference: str, mode: str, effects, bag: Path) -> list:
+    """The graph's node specs for one tracking run, with this probe counted as a listener."""
+    from .bringup import graph_specs
+
+    specs = graph_specs(rig_port=None, lockstep=True, model=model_path if mode != "pid" else None,
+                        mode=mode, reference=REFERENCE_KIND[reference], plant_effects=effects,
+                        record=str(bag), rate_hz=RATE_HZ)
+    for spec in specs:
+        if spec.name == "reference":
+            spec.params.update(REFERENCE_PARAMS[reference])
+            spec.params["min_subscribers"] += 1    # this probe listens too
+        # Lock-step means every sample waits for its command, and every command for its inputs:
+        # on a loaded machine a process can stall for more than the defaults (0.2 s, 0.05 s),
+        # and a plant stepping on without the command is no longer the in-process loop.
+        if spec.name == "sim_plant":
+            spec.params["lockstep_timeout_s"] = LOCKSTEP_WAIT_S
+            spec.params["lockstep_min_subscribers"] += 1    # this probe listens too
+        if spec.name == "controller":
+            spec.params["pair_wait_s"] = LOCKSTEP_WAIT_S
+    return specs
+
+
+def _warn_from_logs(work: Path, mode: str, exits: dict, log) -> None:
+    """Warnings of a graph run that is not the in-process loop sample for sample."""
     slow = {n: t for n, t in exits.items() if t > 2.0}
     if slow:
         print(f"warning: slow exits after SIGINT: {slow}", file=log)
@@ -268,21 +287,25 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
               f"{LOCKSTEP_WAIT_S:g} s of wall time; {unanswered} warning(s) in the plant's log): "
               "this run is not the in-process loop sample for sample; see "
               + str(work / "logs"), file=log)
+
+
+def _summary_from_bag(bag: Path, first_ref_ns: int, duration_s: float) -> tuple[dict, int]:
+    """The tracking summary of the recorded run, and the paired samples it rests on."""
+    from ipmc_driver.dataio import DISPLACEMENT_TYPE, VOLTAGE_TYPE, read_stamped_series
+
     series = read_stamped_series(bag, {"/ipmc/reference": DISPLACEMENT_TYPE,
                                        "/ipmc/displacement": DISPLACEMENT_TYPE,
                                        "/ipmc/voltage": VOLTAGE_TYPE})
     ref, disp, volt = (series[t] for t in ("/ipmc/reference", "/ipmc/displacement",
                                            "/ipmc/voltage"))
-    t_end = first_ref[0] + int(round(duration_s * 1e9))
-    stamps = sorted(s for s in ref if first_ref[0] <= s < t_end and s in disp and s in volt)
+    t_end = first_ref_ns + int(round(duration_s * 1e9))
+    stamps = sorted(s for s in ref if first_ref_ns <= s < t_end and s in disp and s in volt)
     if len(stamps) < 10:
         raise RuntimeError(f"the recorded bag {bag} holds only {len(stamps)} paired samples")
     t = (np.array(stamps) - stamps[0]) * 1e-9
     summary = tracking_summary(t, [ref[s] * 1e3 for s in stamps],
                                [disp[s] * 1e3 for s in stamps], [volt[s] for s in stamps])
-    print(f"graph run: {len(stamps)} samples in {time.monotonic() - t_wall:.1f} s wall; "
-          f"bag {bag}", file=log)
-    return summary
+    return summary, len(stamps)
 
 
 def _count_in_log(path: Path, text: str) -> int:

@@ -15,6 +15,7 @@ write one subclass and decorate it with :func:`register`.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 from typing import ClassVar
@@ -135,8 +136,6 @@ def with_new_columns(model: GeneralizedPI, rec: DiagnosisRecord, change, iterati
                      ) -> GeneralizedPI:
     """A copy of ``model`` with ``change(copy)`` adding feature columns; only their weights
     are fitted (Gauss-Newton through the frozen output map, on the fit rows)."""
-    import copy
-
     m = copy.deepcopy(model)
     change(m)
     old = dict(zip(feature_names(model), range(model.feature_mean_.size), strict=True))
@@ -174,8 +173,6 @@ def scalar_around(model: GeneralizedPI, rec: DiagnosisRecord, attr: str, lo: flo
                   hi: float) -> tuple[GeneralizedPI, float]:
     """A copy of ``model`` with the scalar ``attr`` set by bounded minimisation of the fit
     rows' free-run error over [lo, hi]."""
-    import copy
-
     m = copy.deepcopy(model)
 
     def sse(x: float) -> float:
@@ -242,8 +239,6 @@ class Creep(Candidate):
         if not taus:
             return "no creep time constant the fit part can identify"
 
-        import copy
-
         from ..hysteresis import lowpass_bank
 
         m = copy.deepcopy(model)
@@ -264,8 +259,6 @@ def _creep_params(m: GeneralizedPI, taus) -> dict:
 def fit_drift(model: GeneralizedPI, rec: DiagnosisRecord) -> GeneralizedPI:
     """A copy of ``model`` whose output gain and offset change linearly with time, the two
     rates fitted by least squares on the fit rows (the rest frozen)."""
-    import copy
-
     m = copy.deepcopy(model)
     m.drift_gain_per_s_ = m.drift_offset_mm_per_s_ = 0.0
     lim = m.limit_mm_
@@ -325,8 +318,6 @@ class Delay(Candidate):
         return Fitted(m, {"delay_s": d * rec.dt_s}, scan)
 
     def around(self, model, rec):
-        import copy
-
         best, best_sse = 0, fit_sse(model, rec)
         m = copy.deepcopy(model)
         for d in range(MIN_DELAY_SAMPLES, int(round(rec.config.max_delay_s / rec.dt_s)) + 1):
@@ -414,8 +405,6 @@ class Asymmetry(Candidate):
         return None if given else OWN_MAP_REASON.format(what="asymmetry")
 
     def around(self, model, rec):
-        import copy
-
         m = copy.deepcopy(model)
         m.negative_gain_ = 1.0
         y0 = m.simulate(rec.u_v[rec.fit])
