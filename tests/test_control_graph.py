@@ -135,7 +135,9 @@ def test_controller_parameters_validated_at_run_time(processes, rclpy_context, c
         (res,) = _set(node, probe.params, call, log, mode="open")
         assert not res.successful and "mode must be one of" in res.reason
         (res,) = _set(node, probe.params, call, log, u_clamp_min=5.0)
-        assert not res.successful and "u_clamp_min must be < u_clamp_max" in res.reason
+        assert not res.successful and "0 <= u_clamp_max <= 3" in res.reason
+        (res,) = _set(node, probe.params, call, log, u_clamp_max=100.0)
+        assert not res.successful and "the H-bridge's limit" in res.reason
         results = _set(node, probe.params, call, log, k=2.0, ti_s=0.5, mode="pid")
         assert all(r.successful for r in results), [r.reason for r in results]
     finally:

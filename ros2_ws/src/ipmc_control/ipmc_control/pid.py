@@ -56,6 +56,21 @@ class ControlParameterError(ValueError):
     """A controller or reference parameter is out of its domain."""
 
 
+def check_actuator_limits(u_clamp_min, u_clamp_max, limit_v: float = DEFAULT_U_LIMIT_V
+                          ) -> tuple[float, float]:
+    """The command limits (V) a node may put on the actuator: finite, within the H-bridge's
+    +-``limit_v``, and with 0 V between them (a pair that excludes 0 V holds the actuator away
+    from rest whatever the loop asks). Raises :class:`ControlParameterError` otherwise."""
+    lo = check_parameter("u_clamp_min", u_clamp_min)
+    hi = check_parameter("u_clamp_max", u_clamp_max)
+    if not (-limit_v <= lo <= 0.0 <= hi <= limit_v and lo < hi):
+        raise ControlParameterError(
+            f"u_clamp_min and u_clamp_max must satisfy -{limit_v:g} <= u_clamp_min <= 0 <= "
+            f"u_clamp_max <= {limit_v:g} V (the H-bridge's limit, with 0 V allowed), got "
+            f"{lo:g} and {hi:g}")
+    return lo, hi
+
+
 def check_parameter(name: str, value, *, low: float | None = None, low_open: bool = False,
                     allow_inf: bool = False) -> float:
     """Return ``value`` as a float, or raise :class:`ControlParameterError` naming ``name``.

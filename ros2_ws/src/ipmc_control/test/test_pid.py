@@ -299,3 +299,19 @@ def test_pid_alone_tracks_slow_sine_on_simulated_plant():
     # tuned for the hybrid law, the PID alone lags.
     assert np.sqrt(np.mean(e**2)) < 0.4
     assert np.max(np.abs(e)) < 0.8
+
+
+@pytest.mark.parametrize("lo, hi", [(-3.0, 100.0), (5.0, 3.0), (0.5, 2.0), (-2.0, -0.5),
+                                    (-4.0, 3.0), (float("nan"), 3.0), (-3.0, float("inf"))])
+def test_actuator_limits_refuse_beyond_3_v_or_without_0_v(lo, hi):
+    from ipmc_control.pid import check_actuator_limits
+
+    with pytest.raises(ControlParameterError, match="u_clamp"):
+        check_actuator_limits(lo, hi)
+
+
+def test_actuator_limits_accept_a_pair_around_0_v_within_3_v():
+    from ipmc_control.pid import check_actuator_limits
+
+    assert check_actuator_limits(-3.0, 3.0) == (-3.0, 3.0)
+    assert check_actuator_limits(0.0, 1.5) == (0.0, 1.5)

@@ -55,7 +55,7 @@ from rclpy.node import Node
 from std_msgs.msg import Float64
 
 from ipmc_control.hybrid import HybridController, check_mode
-from ipmc_control.pid import DEFAULT_N, PID, ControlParameterError
+from ipmc_control.pid import DEFAULT_N, PID, ControlParameterError, check_actuator_limits
 from ipmc_driver.dataio import stamp_ns
 from ipmc_driver.node_runtime import run_node
 from ipmc_driver.qos import COMMAND_QOS, PAIRED_SAMPLE_QOS, SAMPLE_QOS
@@ -127,6 +127,7 @@ class Controller(Node):
         if not self.rate_hz > 0 or self.trigger not in TRIGGERS:
             raise ControlParameterError(f"need rate_hz > 0 and trigger in {TRIGGERS}, got "
                                         f"{self.rate_hz} and {self.trigger!r}")
+        check_actuator_limits(g("u_clamp_min").value, g("u_clamp_max").value)
         pid = PID(g("k").value, g("ti_s").value, g("td_s").value, n=g("n").value,
                   u_clamp_max=g("u_clamp_max").value, u_clamp_min=g("u_clamp_min").value,
                   antiwindup_strategy=g("antiwindup_strategy").value,
@@ -208,6 +209,7 @@ class Controller(Node):
                 # Try the whole new set on a scratch controller: all or nothing.
                 cur = {n: self.get_parameter(n).value for n in GAIN_PARAMS + LIMIT_PARAMS}
                 cur.update({n: v for n, v in new.items() if n in cur})
+                check_actuator_limits(cur["u_clamp_min"], cur["u_clamp_max"])
                 PID(cur["k"], cur["ti_s"], cur["td_s"], n=cur["n"],
                     u_clamp_max=cur["u_clamp_max"], u_clamp_min=cur["u_clamp_min"],
                     tracking_time_constant=cur["tracking_time_constant"])
