@@ -82,8 +82,8 @@ def _stamp_ns(msg) -> int:
 
 
 class Controller(Node):
-    def __init__(self) -> None:
-        super().__init__("controller")
+    def _declare_parameters(self) -> None:
+        """Every parameter with its default and meaning (units in the description)."""
         d = ParameterDescriptor
         self.declare_parameter("rate_hz", 100.0, d(
             description="command rate with trigger 'timer', Hz", read_only=True))
@@ -115,9 +115,9 @@ class Controller(Node):
         self.declare_parameter("pair_wait_s", 0.05, d(
             description="trigger 'measurement': longest wall-time wait for the feedforward of "
                         "the reference sample a step aims at, s", read_only=True))
-        self.add_on_set_parameters_callback(self._validate_parameters)
-        self.add_post_set_parameters_callback(self._apply_parameters)
 
+    def _read_loop_parameters(self) -> None:
+        """Rate, trigger and pairing wait (read-only), checked."""
         g = self.get_parameter
         self.rate_hz = float(g("rate_hz").value)
         self.trigger = g("trigger").value
@@ -127,6 +127,15 @@ class Controller(Node):
         if not self.rate_hz > 0 or self.trigger not in TRIGGERS:
             raise ControlParameterError(f"need rate_hz > 0 and trigger in {TRIGGERS}, got "
                                         f"{self.rate_hz} and {self.trigger!r}")
+
+    def __init__(self) -> None:
+        super().__init__("controller")
+        self._declare_parameters()
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+        g = self.get_parameter
+        self._read_loop_parameters()
         check_actuator_limits(g("u_clamp_min").value, g("u_clamp_max").value)
         pid = PID(g("k").value, g("ti_s").value, g("td_s").value, n=g("n").value,
                   u_clamp_max=g("u_clamp_max").value, u_clamp_min=g("u_clamp_min").value,
