@@ -66,6 +66,40 @@ def _structure(text: str):
 
 
 # -- 1. the paper's experiment on the simulated rig ----------------------------------------------
+def _inverse_rows(args, u, y, vals) -> dict:
+    """The inverse LSSVM-NARX models (paper Eq. 19) on the validation records, printed."""
+    rows = {}
+    print("\nInverse models (paper Eq. 19): voltage from the measured displacement; "
+          "free run from the first max-lag measured voltages", flush=True)
+    print("| model | " + " | ".join(f"{k} one-step / free-run RMSE (V)" for k in vals)
+          + " | notes |")
+    print("|---|---|---|---|---|")
+    for lags, lag_step in args.structures:
+        t0 = time.perf_counter()
+        m, tuning = identify_lssvm_narx(u, y, input_lags=args.inverse_input_lags,
+                                        output_lags=lags, lag_step=lag_step, inverse=True,
+                                        n_sources=args.budget[0], n_cycles=args.budget[1],
+                                        seed=args.seed, n_folds=args.folds,
+                                        n_prototypes=args.prototypes, progress=_progress,
+                                        max_val_samples=10000)
+        res = {}
+        for k, v in vals.items():
+            L = m.max_lag_
+            us = m.simulate(v.y_mm, v.u_v[:L])
+            res[k] = {"free_run": rmse(v.u_v, us, L) if np.all(np.isfinite(us))
+                      else float("inf"),
+                      "one_step": rmse(v.u_v, m.predict(v.y_mm, v.u_v), L), "skipped": L}
+        name = (f"inverse LSSVM-NARX ABC, {lags} past displacements, "
+                f"{args.inverse_input_lags} past voltages, lag step {_steps_text(lag_step)}")
+        rows[name] = {"validation": res, "tuning": tuning.as_dict()}
+        cells = " | ".join(f"{r['one_step']:.3f} / {r['free_run']:.3f}"
+                           for r in res.values())
+        print(f"| {name} | {cells} | chose lag step {tuning.lag_step}, C={tuning.C:.4g}, "
+              f"sigma={tuning.sigma:.4g}; {_tuning_text(args, tuning)}; "
+              f"{time.perf_counter() - t0:.0f} s |", flush=True)
+    return rows
+
+
 def paper(args) -> dict:
     from ipmc_driver.plant import IpmcPlant
     from ipmc_driver.signals import random_sine, sine
@@ -124,34 +158,7 @@ def paper(args) -> dict:
                f"{_tuning_text(args, tuning)}; {time.perf_counter() - t0:.0f} s")
         rows[name]["tuning"] = tuning.as_dict()
     if "inverse" in args.models:
-        print("\nInverse models (paper Eq. 19): voltage from the measured displacement; "
-              "free run from the first max-lag measured voltages", flush=True)
-        print("| model | " + " | ".join(f"{k} one-step / free-run RMSE (V)" for k in vals)
-              + " | notes |")
-        print("|---|---|---|---|---|")
-        for lags, lag_step in args.structures:
-            t0 = time.perf_counter()
-            m, tuning = identify_lssvm_narx(u, y, input_lags=args.inverse_input_lags,
-                                            output_lags=lags, lag_step=lag_step, inverse=True,
-                                            n_sources=args.budget[0], n_cycles=args.budget[1],
-                                            seed=args.seed, n_folds=args.folds,
-                                            n_prototypes=args.prototypes, progress=_progress,
-                                            max_val_samples=10000)
-            res = {}
-            for k, v in vals.items():
-                L = m.max_lag_
-                us = m.simulate(v.y_mm, v.u_v[:L])
-                res[k] = {"free_run": rmse(v.u_v, us, L) if np.all(np.isfinite(us))
-                          else float("inf"),
-                          "one_step": rmse(v.u_v, m.predict(v.y_mm, v.u_v), L), "skipped": L}
-            name = (f"inverse LSSVM-NARX ABC, {lags} past displacements, "
-                    f"{args.inverse_input_lags} past voltages, lag step {_steps_text(lag_step)}")
-            rows[name] = {"validation": res, "tuning": tuning.as_dict()}
-            cells = " | ".join(f"{r['one_step']:.3f} / {r['free_run']:.3f}"
-                               for r in res.values())
-            print(f"| {name} | {cells} | chose lag step {tuning.lag_step}, C={tuning.C:.4g}, "
-                  f"sigma={tuning.sigma:.4g}; {_tuning_text(args, tuning)}; "
-                  f"{time.perf_counter() - t0:.0f} s |", flush=True)
+        rows.update(_inverse_rows(args, u, y, vals))
     return rows
 
 
