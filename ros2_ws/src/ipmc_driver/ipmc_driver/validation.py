@@ -1,6 +1,10 @@
-"""The one validation helper of ipmc-ros: turns inputs into finite float arrays or says why not."""
+"""The validation helpers of ipmc-ros: inputs into finite float arrays, and the output paths of
+the commands checked before any work, each refusal one sentence saying why."""
 
 from __future__ import annotations
+
+import os
+from pathlib import Path
 
 import numpy as np
 
@@ -42,3 +46,58 @@ def same_length(**signals: np.ndarray) -> int:
         desc = ", ".join(f"{k} has {n}" for k, n in lengths.items())
         raise ValueError(f"signals must have the same length: {desc}")
     return next(iter(lengths.values()))
+
+
+def _check_folder_writable(folder: Path, option: str, target: Path) -> None:
+    """``folder`` (created later if missing) can hold ``target``: the nearest part of it that
+    exists is a folder this process may write in."""
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ValueError(f"{option} {target}: {existing} is a file, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ValueError(f"{option} {target}: the folder {existing} cannot be written")
+
+
+def check_output_file(path, *, option: str, suffixes: tuple[str, ...]) -> Path:
+    """The file ``path`` a command will write, checked before any work is done.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file to write. Missing folders on the way are allowed (the writer creates them).
+    option : str
+        The command-line option that gave it (``"--out"``), named in the message.
+    suffixes : tuple of str
+        Accepted suffixes, lower case with the dot (``(".csv",)``).
+
+    Returns
+    -------
+    pathlib.Path
+
+    Raises
+    ------
+    ValueError
+        One sentence: the path is a folder, its suffix is not one of ``suffixes``, a part of its
+        folder is a file, or the folder cannot be written.
+    """
+    p = Path(path)
+    if p.is_dir():
+        raise ValueError(f"{option} {p} is a folder; give a file name, e.g. "
+                         f"{p / ('out' + suffixes[0])}")
+    if p.suffix.lower() not in suffixes:
+        raise ValueError(f"{option} {p}: expected a {' or '.join(suffixes)} file name")
+    _check_folder_writable(p.parent, option, p)
+    return p
+
+
+def check_output_dir(path, *, option: str) -> Path:
+    """The folder ``path`` a command will write files in, checked before any work is done:
+    ``ValueError`` (one sentence naming ``option``) if it is a file or cannot be written. A
+    missing folder is allowed (the writer creates it)."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ValueError(f"{option} {p} is a file; give a folder (it is created if missing)")
+    _check_folder_writable(p, option, p)
+    return p
