@@ -8,14 +8,18 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import os
+import secrets
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["DataError", "Record", "export_main", "load_record", "save_csv"]
+from .validation import check_output_file
+
+__all__ = ["DataError", "Record", "export_main", "load_record", "save_csv", "write_atomic"]
 
 VOLTAGE_TOPIC = "/ipmc/voltage"
 DISPLACEMENT_TOPIC = "/ipmc/displacement"
@@ -316,6 +320,46 @@ def _pair(path: Path, volts: dict[int, float], metres_mm: dict[int, float],
                   np.array([metres_mm[s] for s in common]))
 
 
+def write_atomic(files: dict[str | os.PathLike, bytes | str]) -> list[Path]:
+    """Write files so that a crash never leaves a partly written one under its final name.
+
+    Each file is written in full to a temporary file in its own folder (created if missing),
+    flushed to disk, then renamed into place (``os.replace``) in the order given; if anything
+    fails before the renames, no final name is touched and the temporary files are removed.
+    For a pair read together, give last the file a reader opens first.
+
+    Parameters
+    ----------
+    files : dict
+        Destination path (str or os.PathLike) -> content (bytes, or str written as UTF-8).
+
+    Returns
+    -------
+    list of pathlib.Path
+        The destinations, in the order given.
+    """
+    staged: list[tuple[Path, Path]] = []
+    try:
+        for dest, content in files.items():
+            dest = Path(dest)
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            tmp = dest.with_name(f".{dest.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+            # os.open rather than tempfile.mkstemp: the file gets the umask's mode (0644 as a
+            # rule) like any file the user writes, not mkstemp's owner-only 0600
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+            staged.append((tmp, dest))
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(content.encode("utf-8") if isinstance(content, str) else content)
+                fh.flush()
+                os.fsync(fh.fileno())
+        for tmp, dest in staged:
+            os.replace(tmp, dest)
+    finally:
+        for tmp, _ in staged:
+            tmp.unlink(missing_ok=True)
+    return [dest for _, dest in staged]
+
+
 def save_csv(record: Record, path) -> Path:
     """Write ``record`` as a ``t,u,y`` CSV file (s, V, mm), atomically.
 
@@ -334,21 +378,12 @@ def save_csv(record: Record, path) -> Path:
     pathlib.Path
         The written path.
     """
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(f".{p.name}.tmp{os.getpid()}")
-    data = np.column_stack([record.t_s, record.u_v, record.y_mm])
-    try:
-        with tmp.open("w", encoding="utf-8", newline="") as fh:
-            fh.write(",".join(CSV_COLUMNS) + "\n")
-            # 1 ns in time; 10 significant digits in V and mm is far below the sensor's 0.04 mm.
-            np.savetxt(fh, data, fmt=("%.9f", "%.10g", "%.10g"), delimiter=",")
-            fh.flush()
-            os.fsync(fh.fileno())
-        tmp.replace(p)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return p
+    buf = io.StringIO()
+    buf.write(",".join(CSV_COLUMNS) + "\n")
+    # 1 ns in time; 10 significant digits in V and mm is far below the sensor's 0.04 mm.
+    np.savetxt(buf, np.column_stack([record.t_s, record.u_v, record.y_mm]),
+               fmt=("%.9f", "%.10g", "%.10g"), delimiter=",")
+    return write_atomic({path: buf.getvalue()})[0]
 
 
 def export_main(argv: list[str] | None = None) -> int:
@@ -371,11 +406,12 @@ def export_main(argv: list[str] | None = None) -> int:
                              f"fraction (default {MAX_JITTER})")
     args = parser.parse_args(argv)
     try:
+        check_output_file(args.out, option="--out", suffixes=(".csv",))
         record = load_record(args.bag, voltage_topic=args.voltage_topic,
                              displacement_topic=args.displacement_topic,
                              min_samples=args.min_samples, max_jitter=args.max_jitter)
         out = save_csv(record, args.out)
-    except (DataError, OSError) as exc:
+    except (ValueError, OSError) as exc:  # DataError and a refused --out are ValueErrors
         print(f"ipmc export: error: {exc}", file=sys.stderr)
         return 1
     print(f"ipmc export: wrote {len(record)} samples ({record.t_s[-1]:.3f} s at "

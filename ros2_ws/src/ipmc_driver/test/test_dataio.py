@@ -11,7 +11,7 @@ from numpy.testing import assert_allclose
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from ipmc_driver.dataio import DataError, Record, export_main, load_record, save_csv
+from ipmc_driver.dataio import DataError, Record, export_main, load_record, save_csv, write_atomic
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 T0_NS = 1_700_000_000_123_000_000
@@ -228,6 +228,42 @@ def test_export_main_bad_bag_returns_1_with_message(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("ipmc export: error: ") and "metadata.yaml" in err
     assert not (tmp_path / "o.csv").exists()
+
+
+def test_write_atomic_writes_the_files_whole_and_leaves_no_temporary(tmp_path):
+    a, b = tmp_path / "sub" / "m.npz", tmp_path / "sub" / "m.json"
+    assert write_atomic({a: b"\x00\x01", b: "{}\n"}) == [a, b]
+    assert a.read_bytes() == b"\x00\x01" and b.read_text() == "{}\n"
+    assert sorted(p.name for p in a.parent.iterdir()) == ["m.json", "m.npz"]
+
+
+def test_write_atomic_failing_part_way_touches_no_final_name(tmp_path, monkeypatch):
+    import ipmc_driver.dataio as dataio
+
+    old = tmp_path / "m.json"
+    old.write_text("old")
+    calls = []
+
+    def fsync(fd):  # the disk fails on the second file
+        calls.append(fd)
+        if len(calls) == 2:
+            raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(dataio.os, "fsync", fsync)
+    with pytest.raises(OSError, match="No space left"):
+        write_atomic({tmp_path / "m.npz": b"new", old: "new"})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.json"]
+    assert old.read_text() == "old"
+
+
+def test_export_main_refuses_a_bad_out_before_reading(tmp_path, capsys):
+    (tmp_path / "dir").mkdir()
+    for out, why in ((tmp_path / "dir", "is a folder"), (tmp_path / "o.mcap", "expected a .csv")):
+        assert export_main([str(tmp_path / "no_bag"), "--out", str(out)]) == 1
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("ipmc export: error: --out ") and why in err and "\n" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dir"]
+    assert list((tmp_path / "dir").iterdir()) == []
 
 
 def test_import_dataio_leaves_rclpy_out():
