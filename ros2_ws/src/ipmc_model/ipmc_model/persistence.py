@@ -3,16 +3,18 @@ file of its arrays next to it (``model.json`` + ``model.npz``).
 
 ``load_model`` fails with a :class:`~ipmc_model.errors.ModelFileError` whose message is one
 sentence naming the file and what is wrong (missing, not JSON, not an ipmc-ros model, newer
-format version, arrays missing or not matching the JSON's checksum).
+format version, changed or corrupted after it was written, arrays missing).
 
 Format versions: 1, every model; 2 adds a forward ``lssvm-narx`` model's voltage channels
 (``model.params``: ``input_memory_taus_s``, ``include_voltage``, ``dt_s``); 3 adds the kind
 ``lssvm-narx-committee`` (``model.members``: one ``lssvm-narx`` body each, their arrays named
 ``m<i>_centers``, ``m<i>_coef``); 4 adds the kinds ``gpi`` and ``gpi-inverse`` (the
 rate-dependent generalised Prandtl-Ishlinskii model, and the same model served through its
-numerical inverse as a feedforward). A file is written with the lowest version that holds it (a
-model without voltage channels is still version 1, readable by an older ipmc_model);
-version-1 files load as before.
+numerical inverse as a feedforward); 5 adds ``document_sha256``, the checksum of the JSON
+document itself (without that field, serialised with sorted keys and no spaces), which holds
+the NPZ file's checksum ``arrays_sha256``: an edited number in either file is refused. Every
+file is written as version 5; files of versions 1-4 load with their own check (the NPZ file's
+checksum only).
 """
 
 from __future__ import annotations
@@ -26,6 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ipmc_driver.dataio import write_atomic
+from ipmc_driver.validation import check_output_file
+
 from .errors import ModelFileError, NotFittedError
 from .hysteresis import GeneralizedPI, GpiInverse
 from .lssvm import FixedSizeLSSVMRegressor, LSSVMRegressor
@@ -33,7 +38,11 @@ from .narx import InverseNarxModel, NarxCommittee, NarxModel
 from .play import PrandtlIshlinskii
 
 FORMAT = "ipmc-ros-model"
-FORMAT_VERSION = 4  # the newest this module reads and writes
+FORMAT_VERSION = 5  # the newest this module reads, and the one it writes
+#: The field of the JSON document's own checksum (format version 5 on).
+DOCUMENT_CHECKSUM = "document_sha256"
+#: The first format version whose files carry :data:`DOCUMENT_CHECKSUM`.
+DOCUMENT_CHECKSUM_SINCE = 5
 #: NarxModel parameters that exist only since format version 2 (voltage channels).
 CHANNEL_PARAMS = ("input_memory_taus_s", "include_voltage", "dt_s")
 KINDS = ("pi", "lssvm-narx", "lssvm-narx-inverse", "lssvm-narx-committee", "gpi", "gpi-inverse")
@@ -61,7 +70,7 @@ def _regressor_doc(reg) -> tuple[dict, dict]:
 def _narx_doc(m: NarxModel) -> tuple[dict, dict]:
     reg_doc, arrays = _regressor_doc(m.regressor_)
     params = m.get_params()
-    if not m.uses_voltage_channels:  # as a version-1 file
+    if not m.uses_voltage_channels:  # absent, as in the files before format version 2
         params = {k: v for k, v in params.items() if k not in CHANNEL_PARAMS}
     doc = {
         "params": params,
@@ -75,12 +84,47 @@ def _narx_doc(m: NarxModel) -> tuple[dict, dict]:
     return doc, arrays
 
 
+def model_paths(path) -> tuple[Path, Path]:
+    """The JSON file (``.json`` added if missing) and the NPZ file beside it that
+    :func:`save_model` writes for ``path``."""
+    path = Path(path)
+    if path.suffix != ".json":
+        path = path.with_name(path.name + ".json")
+    return path, _arrays_path(path)
+
+
+#: Suffixes a model file name may not end in: .json is added to them, which would give
+#: ``fwd.npz.json`` or ``day1.csv.json`` - most likely a mistaken argument.
+FOREIGN_SUFFIXES = (".npz", ".csv", ".mcap", ".db3", ".yaml", ".yml", ".png")
+
+
+def check_model_output(path, option: str = "--out") -> Path:
+    """The JSON file a model will be written to, checked before any work: ``ValueError`` (one
+    sentence naming ``option``) if ``path`` ends in another file kind's suffix, if it or its
+    NPZ file is a folder, or if its folder cannot be written."""
+    given = Path(path)
+    if given.suffix.lower() in FOREIGN_SUFFIXES:
+        raise ValueError(f"{option} {given}: a model file is a .json name (its arrays go in a "
+                         ".npz file beside it)")
+    if given.is_dir():
+        raise ValueError(f"{option} {given} is a folder; give a model file name, e.g. "
+                         f"{given / 'model.json'}")
+    json_path, npz_path = model_paths(given)
+    check_output_file(json_path, option=option, suffixes=(".json",))
+    check_output_file(npz_path, option=option, suffixes=(".npz",))
+    return json_path
+
+
 def save_model(model, path, *, metadata: dict | None = None) -> Path:
     """Save a fitted model to ``path`` (JSON, ``.json`` added if missing) and ``.npz`` beside it.
 
+    Both files are written in full under temporary names and then renamed into place, the JSON
+    last, so that a crash leaves no partly written file under the final names.
+
     Parameters
     ----------
-    model : PrandtlIshlinskii, NarxModel, NarxCommittee or InverseNarxModel (fitted)
+    model : PrandtlIshlinskii, NarxModel, NarxCommittee, InverseNarxModel, GeneralizedPI or
+        GpiInverse (fitted)
     path : str or os.PathLike
     metadata : dict, optional
         JSON-serialisable notes stored under ``"metadata"`` (data file, tuning result, units).
@@ -90,58 +134,67 @@ def save_model(model, path, *, metadata: dict | None = None) -> Path:
     pathlib.Path
         The JSON file written.
     """
-    path = Path(path)
-    if path.suffix != ".json":
-        path = path.with_name(path.name + ".json")
-    if isinstance(model, (GeneralizedPI, GpiInverse)):
-        kind, body, arrays = _gpi_doc(model)
-    elif isinstance(model, PrandtlIshlinskii):
-        if model.weights_ is None:
-            raise NotFittedError("this PrandtlIshlinskii is not fitted yet; nothing to save")
-        kind = "pi"
-        body = {"params": model.get_params(), "offset": model.offset_}
-        arrays = {"thresholds": model.thresholds_, "weights": model.weights_}
-    elif isinstance(model, InverseNarxModel):
-        if model.narx_ is None:
-            raise NotFittedError("this InverseNarxModel is not fitted yet; nothing to save")
-        kind = "lssvm-narx-inverse"
-        body, arrays = _narx_doc(model.narx_)
-        body["params"] = model.get_params()
-    elif isinstance(model, NarxModel):
-        if model.regressor_ is None:
-            raise NotFittedError("this NarxModel is not fitted yet; nothing to save")
-        kind = "lssvm-narx"
-        body, arrays = _narx_doc(model)
-    elif isinstance(model, NarxCommittee):
-        if model.regressor_ is None:
-            raise NotFittedError("this NarxCommittee is not fitted yet; nothing to save")
-        kind = "lssvm-narx-committee"
-        body, arrays = {"members": []}, {}
-        for i, m in enumerate(model.members):
-            b, a = _narx_doc(m)
-            body["members"].append(b)
-            arrays.update({f"m{i}_{k}": v for k, v in a.items()})
-    else:
-        raise ValueError(f"cannot save an object of type {type(model).__name__}")
-    version = (4 if kind.startswith("gpi") else 3 if isinstance(model, NarxCommittee)
-               else 2 if isinstance(model, NarxModel) and model.uses_voltage_channels else 1)
+    path, arrays_path = model_paths(path)
+    kind, body, arrays = _model_doc(model)
     buf = io.BytesIO()
     np.savez(buf, **{k: np.asarray(v, dtype=float) for k, v in arrays.items()})
     blob = buf.getvalue()
     doc = {
         "format": FORMAT,
-        "format_version": version,
+        "format_version": FORMAT_VERSION,
         "kind": kind,
         "units": {"input": "V", "output": "mm"},
-        "arrays_file": _arrays_path(path).name,
+        "arrays_file": arrays_path.name,
         "arrays_sha256": hashlib.sha256(blob).hexdigest(),
         "model": body,
         "metadata": metadata or {},
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    _arrays_path(path).write_bytes(blob)
-    path.write_text(json.dumps(doc, indent=2, default=_json_default) + "\n")
+    # the checksum of the document as a reader parses it back (tuples become lists, NumPy
+    # scalars numbers), so that reading and checking agree on every value
+    parsed = json.loads(json.dumps(doc, default=_json_default))
+    doc[DOCUMENT_CHECKSUM] = _document_sha256(parsed)
+    text = json.dumps(doc, indent=2, default=_json_default) + "\n"
+    write_atomic({arrays_path: blob, path: text})
     return path
+
+
+def _document_sha256(doc: dict) -> str:
+    """SHA-256 of a model document without its own checksum field, serialised canonically
+    (sorted keys, no spaces, ASCII): what :data:`DOCUMENT_CHECKSUM` holds."""
+    rest = {k: v for k, v in doc.items() if k != DOCUMENT_CHECKSUM}
+    text = json.dumps(rest, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    return hashlib.sha256(text.encode("ascii")).hexdigest()
+
+
+def _model_doc(model) -> tuple[str, dict, dict]:
+    """The kind, JSON body and arrays of a fitted model."""
+    if isinstance(model, (GeneralizedPI, GpiInverse)):
+        return _gpi_doc(model)
+    if isinstance(model, PrandtlIshlinskii):
+        if model.weights_ is None:
+            raise NotFittedError("this PrandtlIshlinskii is not fitted yet; nothing to save")
+        body = {"params": model.get_params(), "offset": model.offset_}
+        return "pi", body, {"thresholds": model.thresholds_, "weights": model.weights_}
+    if isinstance(model, InverseNarxModel):
+        if model.narx_ is None:
+            raise NotFittedError("this InverseNarxModel is not fitted yet; nothing to save")
+        body, arrays = _narx_doc(model.narx_)
+        body["params"] = model.get_params()
+        return "lssvm-narx-inverse", body, arrays
+    if isinstance(model, NarxModel):
+        if model.regressor_ is None:
+            raise NotFittedError("this NarxModel is not fitted yet; nothing to save")
+        return ("lssvm-narx", *_narx_doc(model))
+    if isinstance(model, NarxCommittee):
+        if model.regressor_ is None:
+            raise NotFittedError("this NarxCommittee is not fitted yet; nothing to save")
+        body, arrays = {"members": []}, {}
+        for i, m in enumerate(model.members):
+            b, a = _narx_doc(m)
+            body["members"].append(b)
+            arrays.update({f"m{i}_{k}": v for k, v in a.items()})
+        return "lssvm-narx-committee", body, arrays
+    raise ValueError(f"cannot save an object of type {type(model).__name__}")
 
 
 def _gpi_doc(model) -> tuple[str, dict, dict]:
@@ -238,6 +291,12 @@ def read_model_document(path) -> dict:
                     f"({FORMAT_VERSION}); upgrade ipmc_model")
     if doc.get("kind") not in KINDS:
         _fail(path, f"unknown model kind {doc.get('kind')!r} (known: {', '.join(KINDS)})")
+    # a file of an older version has no document checksum; one that has it is checked whatever
+    # its version says, so that lowering the version does not skip the check
+    if version >= DOCUMENT_CHECKSUM_SINCE or DOCUMENT_CHECKSUM in doc:
+        if doc.get(DOCUMENT_CHECKSUM) != _document_sha256(doc):
+            _fail(path, "the model file was changed or corrupted after it was written (the "
+                        "checksum of its JSON document differs)")
     return doc
 
 
@@ -263,7 +322,8 @@ def load_model(path):
     except OSError:
         _fail(path, f"its arrays file {arrays_path.name} is missing")
     if hashlib.sha256(blob).hexdigest() != doc.get("arrays_sha256"):
-        _fail(path, f"its arrays file {arrays_path.name} does not match (checksum differs)")
+        _fail(path, f"its arrays file {arrays_path.name} was changed or corrupted after it was "
+                    "written, or belongs to another model (its checksum differs)")
     try:
         with np.load(io.BytesIO(blob), allow_pickle=False) as npz:
             arrays = {k: npz[k] for k in npz.files}

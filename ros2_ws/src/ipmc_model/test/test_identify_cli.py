@@ -5,7 +5,7 @@ import pytest
 
 from ipmc_driver.dataio import load_record
 from ipmc_model.identify_cli import evaluate_main, identify_main
-from ipmc_model.persistence import load_model, save_model
+from ipmc_model.persistence import FORMAT_VERSION, load_model, save_model
 
 
 @pytest.fixture(scope="module")
@@ -168,7 +168,7 @@ def test_identify_builds_a_forward_model_with_voltage_channels(tmp_path, csvs, c
     assert tuple(m.input_memory_taus_s) == (0.3, 0.5) and m.dt_s == pytest.approx(0.01)
     assert m.input_lags == 0 and m.output_lags == 0 and m.n_inputs_ == 2
     doc = json.loads(out.read_text())
-    assert doc["format_version"] == 2
+    assert doc["format_version"] == FORMAT_VERSION
     assert doc["model"]["params"]["input_memory_taus_s"] == [0.3, 0.5]
     # The training free run it reported is the model's own free run of the raw voltage.
     from ipmc_driver.dataio import load_record
