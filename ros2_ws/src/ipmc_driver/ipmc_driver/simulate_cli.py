@@ -8,6 +8,7 @@ import sys
 from .dataio import Record, save_csv
 from .plant import EFFECTS, IpmcPlant, load_plant_params
 from .signals import mixed, random_sine, random_steps, sine
+from .validation import check_output_file
 
 INPUTS = ("sine", "random-sine", "steps", "mixed")
 
@@ -44,9 +45,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--effect", action="extend", nargs="+", default=[], choices=EFFECTS,
                         help="optional plant effect(s) to switch on (repeatable)")
     parser.add_argument("--params", help="plant parameter YAML (default: the shipped one)")
-    parser.add_argument("--out", required=True, help="output CSV file")
+    parser.add_argument("--out", required=True,
+                        help="output CSV file (.csv; checked before the run, written whole or "
+                             "not at all)")
     args = parser.parse_args(argv)
     try:
+        check_output_file(args.out, option="--out", suffixes=(".csv",))
         if args.amplitude > 3.0:
             print("ipmc simulate: note: the H-bridge limits the drive to 3 V", file=sys.stderr)
         t, u = make_input(args.input, amplitude_v=args.amplitude, frequency_hz=args.frequency,
@@ -55,9 +59,9 @@ def main(argv: list[str] | None = None) -> int:
                           dt_s=1.0 / args.rate_hz)
         run = plant.run(u)
         path = save_csv(Record(t_s=run.t_s, u_v=run.u_v, y_mm=run.y_mm), args.out)
-    except ValueError as exc:
-        print(f"ipmc simulate: {exc}", file=sys.stderr)
-        return 2
+    except (ValueError, OSError) as exc:
+        print(f"ipmc simulate: error: {exc}", file=sys.stderr)
+        return 1
     print(f"wrote {path}: {t.size} samples at {args.rate_hz:g} Hz, input {args.input}, "
           f"effects {args.effect or 'none'}")
     return 0

@@ -1,5 +1,7 @@
 """`ipmc simulate`: the offline plant, its flags (a public interface) and its CSV."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -76,3 +78,26 @@ def test_mixed_input_refuses_a_band_without_a_slow_quarter():
         mixed(60.0, band_hz=(0.3, 0.8))
     with pytest.raises(ValueError, match="cycles"):
         mixed(60.0, cycles=0)
+
+
+@pytest.mark.parametrize(("out", "why"), [
+    ("folder", r"--out .*folder is a folder; give a file name"),
+    ("run.json", r"--out .*run\.json: expected a \.csv file name"),
+    ("file/run.csv", r"--out .*file/run\.csv: .*file is a file, not a folder"),
+])
+def test_simulate_refuses_an_output_it_cannot_write_before_running(tmp_path, capsys, out, why):
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "file").write_text("x")
+    assert ipmc(["simulate", "--seconds", "5", "--out", str(tmp_path / out)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert re.match(r"ipmc simulate: error: " + why, err) and "\n" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "folder"]
+    assert list((tmp_path / "folder").iterdir()) == []
+
+
+def test_simulate_bad_values_are_one_sentence_and_exit_1(tmp_path, capsys):
+    assert ipmc(["simulate", "--rate-hz", "0", "--out", str(tmp_path / "r.csv")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("ipmc simulate: error: ") and "\n" not in err
+    assert not (tmp_path / "r.csv").exists()
+

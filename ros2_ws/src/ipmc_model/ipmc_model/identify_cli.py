@@ -8,12 +8,16 @@ free-run; free runs start from the first ``max_lag`` measured samples, which are
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import math
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from ipmc_driver.dataio import write_atomic
+from ipmc_driver.validation import check_output_dir, check_output_file
 
 from .effects import (
     AugmentedInverse,
@@ -27,7 +31,7 @@ from .excitation import input_kind
 from .hysteresis import GeneralizedPI, GpiInverse
 from .metrics import score
 from .narx import PAPER_C, PAPER_SIGMA, InverseNarxModel, NarxModel
-from .persistence import save_model
+from .persistence import check_model_output, save_model
 from .play import PrandtlIshlinskii
 from .selection import FAMILIES, compare_families, record_limits, unlike_identification
 from .tuning import (
@@ -223,7 +227,9 @@ def _identify_parser() -> argparse.ArgumentParser:
                         "paper's PI), lssvm-narx (the paper's LSSVM-NARX, ABC-tuned). Default: "
                         "the best of " + ", ".join(FAMILIES) + " on held-out free run; with "
                         "--inverse, gpi (served through its numerical inverse)")
-    p.add_argument("--out", required=True, help="model file to write (.json, + .npz beside it)")
+    p.add_argument("--out", required=True,
+                   help="model file to write (.json, added if missing; + .npz beside it), "
+                        "checked before the fit; the pair is written whole or not at all")
     p.add_argument("--inverse", action="store_true",
                    help="a feedforward: gpi (default) writes the model served through its "
                         "numerical inverse; lssvm-narx identifies the inverse model "
@@ -313,6 +319,7 @@ def identify_main(argv: list[str] | None = None) -> int:
     """Entry point of ``ipmc identify``."""
     args = _identify_parser().parse_args(argv)
     try:
+        out = check_model_output(args.out)
         rec = _load(args.data)
         u, y = rec.u_v, rec.y_mm
         # the kind of input kept with the model: ipmc diagnose --model checks a record against it
@@ -331,13 +338,15 @@ def identify_main(argv: list[str] | None = None) -> int:
         meta["training_metrics"] = {k: result[k] for k in ("free_run", "one_step", "units",
                                                            "samples_skipped")}
         if isinstance(model, AugmentedInverse):
-            path = save_augmented(model, args.out, metadata=meta)
+            path = save_augmented(model, out, metadata=meta)
         else:
-            path = save_model(model, args.out, metadata=meta)
+            path = save_model(model, out, metadata=meta)
         _print_metrics(result, "training")
         _warn_poor_training_fit(result)
         print(f"model written to {path}")
-    except ValueError as exc:  # DataError, ModelFileError and bad inputs are ValueErrors
+    # DataError, ModelFileError, a refused --out and bad inputs are ValueErrors; OSError: the
+    # disk refused the write
+    except (ValueError, OSError) as exc:
         print(f"ipmc identify: error: {exc}", file=sys.stderr)
         return 1
     return 0
@@ -568,8 +577,9 @@ def _evaluate_parser() -> argparse.ArgumentParser:
                         "model_before.json / model_after.json (the baseline with the effects "
                         "found: a creep starts from rest, a drift at the record's start)")
     p.add_argument("--data", required=True, help="t,u,y CSV file (s, V, mm) or rosbag2 folder")
-    p.add_argument("--plots", metavar="DIR", help="write PNG figures to DIR")
-    p.add_argument("--json", metavar="OUT", help="write the metrics as JSON to OUT")
+    p.add_argument("--plots", metavar="DIR",
+                   help="write PNG figures to DIR (a folder, created if missing)")
+    p.add_argument("--json", metavar="OUT", help="write the metrics as JSON to OUT (.json)")
     return p
 
 
@@ -577,6 +587,10 @@ def evaluate_main(argv: list[str] | None = None) -> int:
     """Entry point of ``ipmc evaluate``."""
     args = _evaluate_parser().parse_args(argv)
     try:
+        if args.json:
+            check_output_file(args.json, option="--json", suffixes=(".json",))
+        if args.plots:
+            check_output_dir(args.plots, option="--plots")
         rec = _load(args.data)
         model = load_any_model(args.model, rec.dt_s)
         result = evaluate_model(model, rec.u_v, rec.y_mm)
@@ -589,17 +603,26 @@ def evaluate_main(argv: list[str] | None = None) -> int:
         print(f"note: this record is unlike the identification record: {why}",
               file=sys.stderr)
     _print_metrics(result, "evaluation")
-    if args.json:
-        doc = {k: result[k] for k in ("free_run", "one_step", "units", "samples_skipped")}
-        doc["unlike_identification"] = notes
-        out = Path(args.json)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(doc, indent=2) + "\n")
-        print(f"metrics written to {out}")
-    if args.plots:
-        for f in write_plots(model, rec, result, args.plots):
-            print(f"figure written to {f}")
+    try:
+        if args.json:
+            doc = {k: result[k] for k in ("free_run", "one_step", "units", "samples_skipped")}
+            doc["unlike_identification"] = notes
+            write_atomic({args.json: json.dumps(doc, indent=2) + "\n"})
+            print(f"metrics written to {args.json}")
+        if args.plots:
+            for f in write_plots(model, rec, result, args.plots):
+                print(f"figure written to {f}")
+    except OSError as exc:
+        print(f"ipmc evaluate: error: cannot write the results ({exc})", file=sys.stderr)
+        return 1
     return 0
+
+
+def _save_png(fig, path: Path) -> None:
+    """Save a figure as a PNG file, whole or not at all."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    write_atomic({path: buf.getvalue()})
 
 
 def write_plots(model, rec, result: dict, out_dir) -> list[Path]:
@@ -610,7 +633,6 @@ def write_plots(model, rec, result: dict, out_dir) -> list[Path]:
     import matplotlib.pyplot as plt
 
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     t, u, y = rec.t_s, rec.u_v, rec.y_mm
     inverse = isinstance(model, (InverseNarxModel, AugmentedInverse))
     target, unit = (u, "V") if inverse else (y, "mm")
@@ -630,7 +652,7 @@ def write_plots(model, rec, result: dict, out_dir) -> list[Path]:
                  f"one-step {result['one_step']['rmse']:.4f} {unit})")
     fig.tight_layout()
     paths.append(out_dir / "measured_vs_model.png")
-    fig.savefig(paths[-1], dpi=110)
+    _save_png(fig, paths[-1])
     plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(9, 3.5))
@@ -641,7 +663,7 @@ def write_plots(model, rec, result: dict, out_dir) -> list[Path]:
     ax.legend()
     fig.tight_layout()
     paths.append(out_dir / "error.png")
-    fig.savefig(paths[-1], dpi=110)
+    _save_png(fig, paths[-1])
     plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(5, 5))
@@ -659,7 +681,7 @@ def write_plots(model, rec, result: dict, out_dir) -> list[Path]:
     ax.legend()
     fig.tight_layout()
     paths.append(out_dir / "hysteresis.png")
-    fig.savefig(paths[-1], dpi=110)
+    _save_png(fig, paths[-1])
     plt.close(fig)
     return paths
 

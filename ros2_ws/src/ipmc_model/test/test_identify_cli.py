@@ -6,6 +6,7 @@ import pytest
 from ipmc_driver.dataio import load_record
 from ipmc_model.identify_cli import evaluate_main, identify_main
 from ipmc_model.persistence import FORMAT_VERSION, load_model, save_model
+from ipmc_model.play import PrandtlIshlinskii
 
 
 @pytest.fixture(scope="module")
@@ -332,3 +333,84 @@ def test_identify_effects_from_a_gpi_refits_its_stages_and_inverts_them(tmp_path
     assert isinstance(ff, GpiInverse)
     m = ff.model
     assert (m.delay_samples_, m.dead_zone_v, m.output_taus_s) == (3, 0.2, (12.0,))
+
+
+@pytest.mark.parametrize(("out", "why"), [
+    ("folder", "--out {d}/folder is a folder; give a model file name"),
+    ("named.json", "--out {d}/named.json is a folder"),
+    ("file/m.json", "--out {d}/file/m.json: {d}/file is a file, not a folder"),
+    ("m.npz", "--out {d}/m.npz: a model file is a .json name"),
+])
+def test_identify_refuses_an_output_it_cannot_write_before_fitting(tmp_path, csvs, capsys, out,
+                                                                   why):
+    train, _ = csvs
+    d = tmp_path / "d"
+    d.mkdir()
+    (d / "folder").mkdir()
+    (d / "named.json").mkdir()
+    (d / "file").write_text("x")
+    rc = identify_main(["--data", str(train), "--model", "pi", "--out", str(d / out)])
+    assert rc == 1
+    err = capsys.readouterr().err
+    # refused before the fit: the error is all it printed
+    assert err.startswith(f"ipmc identify: error: {why.format(d=d)}") and err.count("\n") == 1
+    assert sorted(p.name for p in d.iterdir()) == ["file", "folder", "named.json"]
+    assert list((d / "folder").iterdir()) == [] == list((d / "named.json").iterdir())
+
+
+@pytest.mark.parametrize(("extra", "why"), [
+    (["--json", "{d}"], "--json {d} is a folder; give a file name"),
+    (["--json", "{d}/m.txt"], "--json {d}/m.txt: expected a .json file name"),
+    (["--plots", "{d}/f"], "--plots {d}/f is a file; give a folder"),
+])
+def test_evaluate_refuses_an_output_it_cannot_write_before_work(tmp_path, csvs, capsys, extra,
+                                                                why):
+    train, test = csvs
+    model = save_model(PrandtlIshlinskii(n_operators=4).fit(*_uy(train)), tmp_path / "pi")
+    d = tmp_path / "d"
+    d.mkdir()
+    (d / "f").write_text("x")
+    rc = evaluate_main(["--model", str(model), "--data", str(test),
+                        *[e.format(d=d) for e in extra]])
+    assert rc == 1
+    out, err = capsys.readouterr()
+    assert err.startswith(f"ipmc evaluate: error: {why.format(d=d)}") and out == ""
+    assert err.count("\n") == 1
+    assert sorted(p.name for p in d.iterdir()) == ["f"]
+
+
+def _uy(path):
+    rec = load_record(path)
+    return rec.u_v, rec.y_mm
+
+
+def test_evaluate_writes_its_json_whole(tmp_path, csvs):
+    train, test = csvs
+    model = save_model(PrandtlIshlinskii(n_operators=4).fit(*_uy(train)), tmp_path / "pi")
+    out = tmp_path / "new" / "metrics.json"
+    assert evaluate_main(["--model", str(model), "--data", str(test), "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["units"] == "mm"
+    assert sorted(p.name for p in out.parent.iterdir()) == ["metrics.json"]
+
+
+@pytest.mark.parametrize("edit", ["offset", "weights"])
+def test_evaluate_refuses_an_edited_model_file(tmp_path, csvs, capsys, edit):
+    train, test = csvs
+    assert identify_main(["--data", str(train), "--model", "pi", "--out",
+                          str(tmp_path / "m.json")]) == 0
+    path = tmp_path / "m.json"
+    if edit == "offset":
+        doc = json.loads(path.read_text())
+        doc["model"]["offset"] = 1e6
+        path.write_text(json.dumps(doc, indent=2))
+        why = "the model file was changed or corrupted after it was written"
+    else:
+        npz = path.with_suffix(".npz")
+        npz.write_bytes(npz.read_bytes().replace(b"weights", b"weightz"))
+        why = "its arrays file m.npz was changed or corrupted"
+    capsys.readouterr()
+    assert evaluate_main(["--model", str(path), "--data", str(test)]) == 1
+    out, err = capsys.readouterr()
+    assert out == "" and err.strip().startswith(f"ipmc evaluate: error: {path}: {why}")
+    assert err.count("\n") == 1
+
