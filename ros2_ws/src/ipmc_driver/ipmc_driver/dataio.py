@@ -12,6 +12,7 @@ import io
 import os
 import secrets
 import sys
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,7 +20,8 @@ import numpy as np
 
 from .validation import check_output_file
 
-__all__ = ["DataError", "Record", "export_main", "load_record", "save_csv", "write_atomic"]
+__all__ = ["DataError", "ImplausibleDataWarning", "Record", "check_plausibility", "export_main",
+           "load_record", "save_csv", "write_atomic"]
 
 VOLTAGE_TOPIC = "/ipmc/voltage"
 DISPLACEMENT_TOPIC = "/ipmc/displacement"
@@ -138,6 +140,91 @@ def check_record(record: Record, *, source: str = "record", min_samples: int = M
     return record
 
 
+#: Plausibility of a record's values and units (:func:`check_plausibility`), with the reason
+#: for each threshold. The H-bridge drives at most 3 V; 10 % over it is the voltage sensor's
+#: error, beyond it the record was not driven through the H-bridge.
+WARN_VOLTAGE_V = 3.3
+#: An IPMC is driven at a few volts (its water electrolyses above that): a voltage beyond 10 V
+#: never drove one; it is in another unit (mV) or of another device. Refused.
+MAX_VOLTAGE_V = 10.0
+#: An IPMC bender's tip moves well under 1 m (the strips are a few cm long): beyond it y is
+#: not in mm (micrometres?). Refused.
+MAX_DISPLACEMENT_MM = 1000.0
+#: IPMC strips are at most about 100 mm long, so their tips do not move further: a warning.
+WARN_DISPLACEMENT_MM = 100.0
+#: A tip record in mm spans tenths of a millimetre or more; a span below the displacement
+#: sensor's 0.04 mm resolution is a record in metres (20 mm of travel is 0.02 m): a warning.
+MIN_SPAN_MM = 0.05
+#: An IPMC responds within a second: a record sampled every 0.5 s or slower cannot show it;
+#: such a time step is in milliseconds (10 ms at 100 Hz reads as 10): a warning.
+MAX_STEP_S = 0.5
+
+
+class ImplausibleDataWarning(UserWarning):
+    """A record's values look like another unit than s, V and mm (see
+    :func:`check_plausibility`)."""
+
+
+def check_plausibility(record: Record, *, source: str = "record",
+                       allow_implausible: bool = False) -> list[str]:
+    """Check that ``record``'s values can be an IPMC record in s, V and mm; pure.
+
+    What cannot be one (|u| above :data:`MAX_VOLTAGE_V`, |y| above
+    :data:`MAX_DISPLACEMENT_MM`) is refused unless ``allow_implausible``; what is unlikely
+    (|u| beyond the H-bridge's 3 V, |y| above :data:`WARN_DISPLACEMENT_MM`, y spanning less
+    than :data:`MIN_SPAN_MM`, time steps of :data:`MAX_STEP_S` or more) is returned as
+    warnings. Non-finite values and time that does not increase are :func:`check_record`'s
+    refusals, not lifted by ``allow_implausible``: no model runs on them.
+
+    Parameters
+    ----------
+    record : Record
+        A record that passed :func:`check_record`.
+    source : str
+        What to call it in the messages (a file name).
+    allow_implausible : bool
+        Return the refusals as warnings instead of raising.
+
+    Returns
+    -------
+    list of str
+        One sentence per warning, each naming the likely cause.
+
+    Raises
+    ------
+    DataError
+        The first refusal, one sentence naming ``source``.
+    """
+    u_peak_v = float(np.max(np.abs(record.u_v), initial=0.0))
+    y_peak_mm = float(np.max(np.abs(record.y_mm), initial=0.0))
+    y_span = float(np.ptp(record.y_mm)) if len(record) else 0.0
+    refusals, notes = [], []
+    if u_peak_v > MAX_VOLTAGE_V:
+        unit = ("looks like millivolts; ipmc expects V" if u_peak_v / 1e3 <= WARN_VOLTAGE_V
+                else "no IPMC is driven at that")
+        refusals.append(f"{source}: u reaches {u_peak_v:.4g} V, far beyond the H-bridge's 3 V "
+                        f"({unit})")
+    elif u_peak_v > WARN_VOLTAGE_V:
+        notes.append(f"{source}: u reaches {u_peak_v:.4g} V, beyond the H-bridge's 3 V: the "
+                     "record was not driven through it, or its voltage is scaled.")
+    if y_peak_mm > MAX_DISPLACEMENT_MM:
+        refusals.append(f"{source}: y reaches {y_peak_mm:.4g}, beyond 1 m while an IPMC tip "
+                        "moves well under it (looks like micrometres; ipmc expects mm)")
+    elif y_peak_mm > WARN_DISPLACEMENT_MM:
+        notes.append(f"{source}: y reaches {y_peak_mm:.4g} mm, further than an IPMC strip is "
+                     "long: is it in another unit? ipmc expects mm.")
+    if 0.0 < y_span < MIN_SPAN_MM:
+        notes.append(f"{source}: y spans {y_span:.2g} - looks like metres; ipmc expects mm (a "
+                     f"tip record in mm spans more than {MIN_SPAN_MM:g} mm).")
+    if len(record) > 1 and record.dt_s >= MAX_STEP_S:
+        notes.append(f"{source}: t steps by {record.dt_s:.4g} - looks like milliseconds; ipmc "
+                     f"expects s (a record at {record.rate_hz:.3g} Hz cannot show an IPMC's "
+                     "response).")
+    if refusals and not allow_implausible:
+        raise DataError(f"{refusals[0]}; --allow-implausible accepts it.")
+    return [f"{r}." for r in refusals] + notes
+
+
 def stamp_ns(stamp) -> int:
     """A ``builtin_interfaces/Time`` (anything with ``sec`` and ``nanosec``) as integer ns: the
     exact key samples, commands and references are paired by."""
@@ -146,7 +233,8 @@ def stamp_ns(stamp) -> int:
 
 def load_record(path, *, voltage_topic: str = VOLTAGE_TOPIC,
                 displacement_topic: str = DISPLACEMENT_TOPIC, min_samples: int = MIN_SAMPLES,
-                max_jitter: float = MAX_JITTER) -> Record:
+                max_jitter: float = MAX_JITTER, allow_implausible: bool = False,
+                notes: list[str] | None = None) -> Record:
     """Load a record from a ``t,u,y`` CSV file or a rosbag2 folder (MCAP or sqlite3).
 
     Parameters
@@ -163,6 +251,11 @@ def load_record(path, *, voltage_topic: str = VOLTAGE_TOPIC,
         Fewest samples accepted.
     max_jitter : float
         Accepted deviation of a sampling interval from the median, a fraction of it.
+    allow_implausible : bool
+        Accept values no IPMC record has (:func:`check_plausibility`), with a warning.
+    notes : list of str, optional
+        Receives :func:`check_plausibility`'s warnings (a command prints them); without it
+        they are issued as :class:`ImplausibleDataWarning`.
 
     Returns
     -------
@@ -173,8 +266,8 @@ def load_record(path, *, voltage_topic: str = VOLTAGE_TOPIC,
     Raises
     ------
     DataError
-        NaN, unsorted or irregular time, too few samples, missing columns or topics, or an
-        unreadable file; the message is one sentence naming the file.
+        NaN, unsorted or irregular time, too few samples, missing columns or topics, values
+        no IPMC record has, or an unreadable file; the message is one sentence naming the file.
     """
     p = Path(path)
     if not p.exists():
@@ -183,7 +276,14 @@ def load_record(path, *, voltage_topic: str = VOLTAGE_TOPIC,
         record = _load_bag(p, voltage_topic, displacement_topic)
     else:
         record = _load_csv(p)
-    return check_record(record, source=str(p), min_samples=min_samples, max_jitter=max_jitter)
+    check_record(record, source=str(p), min_samples=min_samples, max_jitter=max_jitter)
+    found = check_plausibility(record, source=str(p), allow_implausible=allow_implausible)
+    if notes is None:
+        for note in found:
+            warnings.warn(note, ImplausibleDataWarning, stacklevel=2)
+    else:
+        notes.extend(found)
+    return record
 
 
 def _load_csv(path: Path) -> Record:
@@ -386,6 +486,21 @@ def save_csv(record: Record, path) -> Path:
     return write_atomic({path: buf.getvalue()})[0]
 
 
+def add_allow_implausible(parser: argparse.ArgumentParser) -> None:
+    """The ``--allow-implausible`` option of the commands that load a record."""
+    parser.add_argument(
+        "--allow-implausible", action="store_true",
+        help=f"use a record whose values no IPMC record has (|u| above {MAX_VOLTAGE_V:g} V, "
+             f"|y| above {MAX_DISPLACEMENT_MM:g} mm: most likely another unit), with a warning; "
+             "non-finite values and time that does not increase are refused regardless")
+
+
+def print_notes(prog: str, notes: list[str]) -> None:
+    """Print :func:`check_plausibility`'s warnings of a command, one line each, to stderr."""
+    for note in notes:
+        print(f"{prog}: warning: {note}", file=sys.stderr)
+
+
 def export_main(argv: list[str] | None = None) -> int:
     """``ipmc export BAG --out FILE.csv``: write a bag's voltage and displacement as ``t,u,y``."""
     parser = argparse.ArgumentParser(
@@ -404,12 +519,16 @@ def export_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-jitter", type=float, default=MAX_JITTER,
                         help="accepted deviation of a sampling interval from the median, as a "
                              f"fraction (default {MAX_JITTER})")
+    add_allow_implausible(parser)
     args = parser.parse_args(argv)
+    notes: list[str] = []
     try:
         check_output_file(args.out, option="--out", suffixes=(".csv",))
         record = load_record(args.bag, voltage_topic=args.voltage_topic,
                              displacement_topic=args.displacement_topic,
-                             min_samples=args.min_samples, max_jitter=args.max_jitter)
+                             min_samples=args.min_samples, max_jitter=args.max_jitter,
+                             allow_implausible=args.allow_implausible, notes=notes)
+        print_notes("ipmc export", notes)
         out = save_csv(record, args.out)
     except (ValueError, OSError) as exc:  # DataError and a refused --out are ValueErrors
         print(f"ipmc export: error: {exc}", file=sys.stderr)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .dataio import Record, save_csv
+from .dataio import Record, check_plausibility, print_notes, save_csv
 from .plant import EFFECTS, IpmcPlant, load_plant_params
 from .signals import mixed, random_sine, random_steps, sine
 from .validation import check_output_file
@@ -58,7 +58,12 @@ def main(argv: list[str] | None = None) -> int:
         plant = IpmcPlant(load_plant_params(args.params), effects=args.effect, seed=args.seed,
                           dt_s=1.0 / args.rate_hz)
         run = plant.run(u)
-        path = save_csv(Record(t_s=run.t_s, u_v=run.u_v, y_mm=run.y_mm), args.out)
+        record = Record(t_s=run.t_s, u_v=run.u_v, y_mm=run.y_mm)
+        # the plant parameters (--params) set the record's scale: warn here about what
+        # ipmc identify would find implausible in the file
+        print_notes("ipmc simulate", check_plausibility(record, source=str(args.out),
+                                                        allow_implausible=True))
+        path = save_csv(record, args.out)
     except (ValueError, OSError) as exc:
         print(f"ipmc simulate: error: {exc}", file=sys.stderr)
         return 1

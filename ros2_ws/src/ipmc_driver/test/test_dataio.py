@@ -1,5 +1,6 @@
 """Tests of ipmc_driver.dataio: CSV and rosbag2 loading, CSV saving, ``ipmc export``."""
 
+import re
 import subprocess
 import sys
 
@@ -11,7 +12,16 @@ from numpy.testing import assert_allclose
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from ipmc_driver.dataio import DataError, Record, export_main, load_record, save_csv, write_atomic
+from ipmc_driver.dataio import (
+    DataError,
+    ImplausibleDataWarning,
+    Record,
+    check_plausibility,
+    export_main,
+    load_record,
+    save_csv,
+    write_atomic,
+)
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 T0_NS = 1_700_000_000_123_000_000
@@ -82,10 +92,10 @@ def test_save_csv_round_trip_any_values(tmp_path_factory, samples, dt):
 
 
 def test_load_csv_accepts_extra_columns_and_blank_lines(tmp_path):
-    lines = ["y, t ,extra,u"] + [f"{k * 0.1},{k * 0.01},x,{k}" for k in range(12)] + ["", ""]
-    rec = load_record(_write_csv(tmp_path / "a.csv", "\n".join(lines)))
+    lines = ["y, t ,extra,u"] + [f"{k * 0.1},{k * 0.01},x,{k * 0.2}" for k in range(12)]
+    rec = load_record(_write_csv(tmp_path / "a.csv", "\n".join(lines + ["", ""])))
     assert_allclose(rec.t_s, np.arange(12) * 0.01, atol=1e-12)
-    assert_allclose(rec.u_v, np.arange(12))
+    assert_allclose(rec.u_v, np.arange(12) * 0.2)
     assert_allclose(rec.y_mm, np.arange(12) * 0.1)
 
 
@@ -264,6 +274,91 @@ def test_export_main_refuses_a_bad_out_before_reading(tmp_path, capsys):
         assert err.startswith("ipmc export: error: --out ") and why in err and "\n" not in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["dir"]
     assert list((tmp_path / "dir").iterdir()) == []
+
+
+def _plausible(n=200, dt=0.01):
+    t = np.arange(n) * dt
+    u = 2.5 * np.sin(2 * np.pi * 0.5 * t)
+    return t, u, 3.0 * np.sin(2 * np.pi * 0.5 * t - 0.3)
+
+
+def test_plausibility_passes_an_ipmc_record_silently():
+    assert check_plausibility(Record(*_plausible())) == []
+
+
+@pytest.mark.parametrize(("scale", "match"), [
+    ((1, 100, 1), r"r\.csv: u reaches 250 V, far beyond the H-bridge's 3 V \(looks like "
+                  r"millivolts; ipmc expects V\); --allow-implausible accepts it\.$"),
+    ((1, 1e4, 1), r"u reaches 2\.5e\+04 V, .*\(no IPMC is driven at that\)"),
+    ((1, 1, 1000), r"r\.csv: y reaches 3000, beyond 1 m .*\(looks like micrometres; ipmc "
+                   r"expects mm\)"),
+])
+def test_plausibility_refuses_what_no_ipmc_record_has(scale, match):
+    t, u, y = _plausible()
+    rec = Record(t * scale[0], u * scale[1], y * scale[2])
+    with pytest.raises(DataError, match=match) as info:
+        check_plausibility(rec, source="r.csv")
+    assert "\n" not in str(info.value)
+    allowed = check_plausibility(rec, source="r.csv", allow_implausible=True)
+    assert len(allowed) == 1 and allowed[0].startswith("r.csv: ") and allowed[0].endswith(".")
+
+
+@pytest.mark.parametrize(("scale", "match"), [
+    ((1, 1, 1e-3), r"r\.csv: y spans 0\.006 - looks like metres; ipmc expects mm"),
+    ((1000, 1, 1), r"r\.csv: t steps by 10 - looks like milliseconds; ipmc expects s"),
+    ((1, 1.6, 1), r"r\.csv: u reaches 4 V, beyond the H-bridge's 3 V"),
+    ((1, 1, 50), r"r\.csv: y reaches 150 mm, further than an IPMC strip is long"),
+])
+def test_plausibility_warns_of_a_likely_unit_mistake(scale, match):
+    t, u, y = _plausible()
+    notes = check_plausibility(Record(t * scale[0], u * scale[1], y * scale[2]),
+                               source="r.csv")
+    assert len(notes) == 1 and re.match(match, notes[0]) and notes[0].endswith(".")
+
+
+def test_load_record_applies_the_plausibility_check(tmp_path):
+    t, u, y = _plausible()
+    volts = save_csv(Record(t, 100 * u, y), tmp_path / "volts.csv")
+    with pytest.raises(DataError, match=r"volts\.csv: u reaches 250 V"):
+        load_record(volts)
+    notes = []
+    assert len(load_record(volts, allow_implausible=True, notes=notes)) == 200
+    assert len(notes) == 1 and "250 V" in notes[0]
+    metres = save_csv(Record(t, u, y * 1e-3), tmp_path / "metres.csv")
+    with pytest.warns(ImplausibleDataWarning, match="looks like metres"):
+        load_record(metres)
+    notes = []
+    load_record(metres, notes=notes)
+    assert len(notes) == 1 and "looks like metres" in notes[0]
+
+
+def test_load_record_checks_a_bag_in_mm_after_conversion(tmp_path):
+    # a bag's displacement is in metres on the topic: converted, it is plausible
+    n = 40
+    stamps = T0_NS + np.arange(n) * 10_000_000
+    bag = write_bag(tmp_path / "bag", stamps, np.sin(np.arange(n) * 0.3), stamps,
+                    2e-3 * np.cos(np.arange(n) * 0.3))
+    notes = []
+    load_record(bag, notes=notes)
+    assert notes == []
+    bag = write_bag(tmp_path / "bag_v", stamps, 300 * np.sin(np.arange(n) * 0.3), stamps,
+                    2e-3 * np.cos(np.arange(n) * 0.3))
+    with pytest.raises(DataError, match=r"bag_v: u reaches .* V, far beyond"):
+        load_record(bag)
+
+
+def test_export_main_refuses_an_implausible_bag_unless_allowed(tmp_path, capsys):
+    n = 30
+    stamps = T0_NS + np.arange(n) * 10_000_000
+    bag = write_bag(tmp_path / "bag", stamps, np.linspace(-300, 300, n), stamps,
+                    np.linspace(-1, 1, n) * 1e-3)
+    out = tmp_path / "out.csv"
+    assert export_main([str(bag), "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("ipmc export: error: ") and "far beyond the H-bridge" in err
+    assert not out.exists()
+    assert export_main([str(bag), "--out", str(out), "--allow-implausible"]) == 0
+    assert "ipmc export: warning: " in capsys.readouterr().err and out.exists()
 
 
 def test_import_dataio_leaves_rclpy_out():

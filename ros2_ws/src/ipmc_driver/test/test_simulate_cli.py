@@ -101,3 +101,20 @@ def test_simulate_bad_values_are_one_sentence_and_exit_1(tmp_path, capsys):
     assert err.startswith("ipmc simulate: error: ") and "\n" not in err
     assert not (tmp_path / "r.csv").exists()
 
+
+def test_simulate_warns_of_a_record_in_the_wrong_scale(tmp_path, capsys):
+    # plant parameters that give the tip in metres (gains 1000 times too small)
+    from ipmc_driver.plant import default_params_path
+
+    text = default_params_path().read_text()
+    text = text.replace("gain_pos_mm_per_v: 1.89", "gain_pos_mm_per_v: 0.00189")
+    text = text.replace("gain_neg_mm_per_v: 0.7953", "gain_neg_mm_per_v: 0.0007953")
+    text = text.replace("noise_std_mm: 0.005", "noise_std_mm: 0.0")
+    text = text.replace("resolution_mm: 0.01", "resolution_mm: 0.0")
+    params = tmp_path / "metres.yaml"
+    params.write_text(text)
+    out = tmp_path / "r.csv"
+    assert ipmc(["simulate", "--seconds", "10", "--params", str(params), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert re.search(r"ipmc simulate: warning: .*r\.csv: y spans .* - looks like metres", err)
+    assert out.exists()

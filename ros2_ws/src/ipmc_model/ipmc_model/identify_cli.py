@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ipmc_driver.dataio import write_atomic
+from ipmc_driver.dataio import add_allow_implausible, load_record, print_notes, write_atomic
 from ipmc_driver.validation import check_output_dir, check_output_file
 
 from .effects import (
@@ -73,10 +73,12 @@ NARX_CHANNEL_DEFAULTS = {"tune": "none", "C": 1e6, "sigma": 1.0, "prototypes": 8
 MAX_VAL_SAMPLES = 10000
 
 
-def _load(path: str):
-    from ipmc_driver.dataio import load_record
-
-    return load_record(path)
+def _load(path: str, prog: str, allow_implausible: bool):
+    """The record of ``--data``, its plausibility warnings printed."""
+    notes: list[str] = []
+    rec = load_record(path, allow_implausible=allow_implausible, notes=notes)
+    print_notes(prog, notes)
+    return rec
 
 
 def _budget(text: str) -> tuple[int, int]:
@@ -230,6 +232,7 @@ def _identify_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True,
                    help="model file to write (.json, added if missing; + .npz beside it), "
                         "checked before the fit; the pair is written whole or not at all")
+    add_allow_implausible(p)
     p.add_argument("--inverse", action="store_true",
                    help="a feedforward: gpi (default) writes the model served through its "
                         "numerical inverse; lssvm-narx identifies the inverse model "
@@ -320,7 +323,7 @@ def identify_main(argv: list[str] | None = None) -> int:
     args = _identify_parser().parse_args(argv)
     try:
         out = check_model_output(args.out)
-        rec = _load(args.data)
+        rec = _load(args.data, "ipmc identify", args.allow_implausible)
         u, y = rec.u_v, rec.y_mm
         # the kind of input kept with the model: ipmc diagnose --model checks a record against it
         meta = {"data": str(args.data), "samples": int(u.size), "rate_hz": float(rec.rate_hz),
@@ -580,6 +583,7 @@ def _evaluate_parser() -> argparse.ArgumentParser:
     p.add_argument("--plots", metavar="DIR",
                    help="write PNG figures to DIR (a folder, created if missing)")
     p.add_argument("--json", metavar="OUT", help="write the metrics as JSON to OUT (.json)")
+    add_allow_implausible(p)
     return p
 
 
@@ -591,7 +595,7 @@ def evaluate_main(argv: list[str] | None = None) -> int:
             check_output_file(args.json, option="--json", suffixes=(".json",))
         if args.plots:
             check_output_dir(args.plots, option="--plots")
-        rec = _load(args.data)
+        rec = _load(args.data, "ipmc evaluate", args.allow_implausible)
         model = load_any_model(args.model, rec.dt_s)
         result = evaluate_model(model, rec.u_v, rec.y_mm)
         notes = unlike_identification(getattr(model, "metadata_", {}) or {}, rec.u_v,

@@ -1,4 +1,5 @@
 import json
+import re
 
 import numpy as np
 import pytest
@@ -414,3 +415,35 @@ def test_evaluate_refuses_an_edited_model_file(tmp_path, csvs, capsys, edit):
     assert out == "" and err.strip().startswith(f"ipmc evaluate: error: {path}: {why}")
     assert err.count("\n") == 1
 
+
+def _scaled_csv(tmp_path, csv, name, u_gain=1.0, y_gain=1.0):
+    from ipmc_driver.dataio import Record, save_csv
+
+    rec = load_record(csv)
+    return save_csv(Record(rec.t_s, rec.u_v * u_gain, rec.y_mm * y_gain), tmp_path / name)
+
+
+def test_identify_and_evaluate_refuse_volts_no_ipmc_is_driven_at(tmp_path, csvs, capsys):
+    train, test = csvs
+    volts = _scaled_csv(tmp_path, train, "mv.csv", u_gain=100.0)
+    out = tmp_path / "m.json"
+    assert identify_main(["--data", str(volts), "--model", "pi", "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == (f"ipmc identify: error: {volts}: u reaches 250 V, far beyond the H-bridge's "
+                   "3 V (looks like millivolts; ipmc expects V); --allow-implausible accepts it.")
+    assert not out.exists()
+    assert identify_main(["--data", str(volts), "--model", "pi", "--out", str(out),
+                          "--allow-implausible"]) == 0
+    assert "ipmc identify: warning: " in capsys.readouterr().err and out.exists()
+    assert evaluate_main(["--model", str(out), "--data", str(volts)]) == 1
+    assert "u reaches 250 V" in capsys.readouterr().err
+
+
+def test_identify_and_evaluate_warn_of_a_record_in_metres(tmp_path, csvs, capsys):
+    train, test = csvs
+    metres = _scaled_csv(tmp_path, test, "metres.csv", y_gain=1e-3)
+    model = save_model(PrandtlIshlinskii(n_operators=4).fit(*_uy(train)), tmp_path / "pi")
+    assert evaluate_main(["--model", str(model), "--data", str(metres)]) == 0
+    err = capsys.readouterr().err
+    assert re.search(r"^ipmc evaluate: warning: .*metres\.csv: y spans 0\.\d+ - looks like "
+                     r"metres; ipmc expects mm", err, re.M)
