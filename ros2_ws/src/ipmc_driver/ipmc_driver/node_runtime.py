@@ -14,17 +14,30 @@
   argument" and exits 1 with a traceback (seen on model_server under lock-step load). The timer
   also wakes the executor when a node's own timers follow a simulated clock that has stopped.
 - A node that cannot start (bad parameter, missing port) prints one line and exits 1.
+- Parameters: each node lists its own in a table of :class:`ParameterSpec` (default, meaning,
+  read-only, check) and declares them with :func:`declare_checked`: a value of the wrong type
+  (``-p k:=2`` for a float, ``-p watchdog_s:=abc``) or out of its range stops the start with one
+  sentence naming the parameter (rclpy raises a 19-line traceback for the type). The same
+  checks refuse a run-time change (:func:`check_changes`, in the node's
+  ``add_on_set_parameters_callback``) with the reason; rclpy itself refuses a value of another
+  type and a read-only parameter.
 """
 
 from __future__ import annotations
 
+import math
+import re
 import signal
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import Any
 
 import rclpy
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
+from rclpy.exceptions import InvalidParameterTypeException, ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
@@ -117,8 +130,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None, *, name
             executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException, Terminated):
         pass
-    except (ValueError, OSError) as exc:
-        print(f"{name}: error: {exc}", file=sys.stderr)
+    except (ValueError, OSError, ParameterException) as exc:
+        # ParameterException: a wrong type for a parameter rclpy declares itself (use_sim_time)
+        print(f"{name}: error: {describe_parameter_error(exc)}", file=sys.stderr)
         raise SystemExit(1) from None
     finally:
         stop.ignore()
@@ -128,3 +142,127 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None, *, name
         finally:
             stop.restore()
             rclpy.try_shutdown()
+
+
+# -- parameters ---------------------------------------------------------------------------------
+Check = Callable[[Any], str]
+
+
+class ParameterError(ValueError):
+    """A parameter value a node refuses: one sentence naming the parameter."""
+
+
+@dataclass(frozen=True)
+class ParameterSpec:
+    """One node parameter: its default (which fixes its type), meaning, and the check of a value.
+
+    ``check(value)`` returns ``""`` for a good value, else why it is refused, as the end of a
+    sentence that starts with the parameter's name ("must be > 0, got -1.0").
+    """
+
+    default: Any
+    description: str
+    read_only: bool = False
+    check: Check | None = None
+
+
+# How a value of each rclpy type is written on the command line.
+_TYPE_WORDS = {
+    "DOUBLE": "a float (write 2.0, not 2)", "INTEGER": "an integer", "BOOL": "true or false",
+    "STRING": "a string", "DOUBLE_ARRAY": "a list of floats, e.g. [0.0, 0.7]",
+    "INTEGER_ARRAY": "a list of integers, e.g. [1, 2]", "BOOL_ARRAY": "a list of true/false",
+    "STRING_ARRAY": "a list of strings, e.g. [a, b]", "BYTE_ARRAY": "a list of bytes"}
+_TYPE_ERROR = re.compile(r"Trying to set parameter '(?P<name>.*?)' to '(?P<value>.*)' of type "
+                         r"'(?P<given>\w+)', expecting type '(?:Type\.)?(?P<expected>\w+)'")
+
+
+def describe_parameter_error(exc: Exception) -> str:
+    """One sentence for a refused parameter; rclpy's type error says what to write instead."""
+    found = (_TYPE_ERROR.search(str(exc))
+             if isinstance(exc, InvalidParameterTypeException) else None)
+    if found is None:
+        return str(exc)
+    expected = found["expected"]
+    words = _TYPE_WORDS.get(expected, expected.lower())
+    return (f"parameter {found['name']} must be {words}, got {found['value']} "
+            f"({found['given'].lower().replace('_', ' ')})")
+
+
+def declare_checked(node: Node, specs: dict[str, ParameterSpec]) -> dict[str, Any]:
+    """Declare every parameter of ``specs`` on ``node`` and check the values it starts with.
+
+    Returns
+    -------
+    dict
+        Parameter name -> value.
+
+    Raises
+    ------
+    ParameterError
+        One sentence naming the first parameter of the wrong type or out of its range.
+    """
+    for name, spec in specs.items():
+        try:
+            node.declare_parameter(name, spec.default, ParameterDescriptor(
+                description=spec.description, read_only=spec.read_only))
+        except InvalidParameterTypeException as exc:
+            raise ParameterError(describe_parameter_error(exc)) from None
+    values = {name: node.get_parameter(name).value for name in specs}
+    problem = check_values(specs, values)
+    if problem:
+        raise ParameterError(problem)
+    return values
+
+
+def check_values(specs: dict[str, ParameterSpec], values: dict[str, Any]) -> str:
+    """Why the first refused value of ``values`` is refused (``""``: all good)."""
+    for name, value in values.items():
+        spec = specs.get(name)
+        why = spec.check(value) if spec is not None and spec.check is not None else ""
+        if why:
+            return f"parameter {name} {why}"
+    return ""
+
+
+def check_changes(specs: dict[str, ParameterSpec], params: Iterable) -> SetParametersResult:
+    """The answer to a run-time change (``add_on_set_parameters_callback``): refused with the
+    reason when a new value fails its check."""
+    problem = check_values(specs, {p.name: p.value for p in params})
+    return SetParametersResult(successful=not problem, reason=problem)
+
+
+# Checks for ParameterSpec.check: each returns "" or why the value is refused.
+def positive(value: Any) -> str:
+    """A finite number > 0."""
+    return "" if _finite(value) and value > 0 else f"must be > 0, got {value!r}"
+
+
+def non_negative(value: Any) -> str:
+    """A finite number >= 0."""
+    return "" if _finite(value) and value >= 0 else f"must be >= 0, got {value!r}"
+
+
+def one_of(*choices: str) -> Check:
+    """One of ``choices``."""
+    def check(value: Any) -> str:
+        return "" if value in choices else f"must be one of {', '.join(choices)}, got {value!r}"
+    return check
+
+
+def within(low: float, high: float, *, low_open: bool = False) -> Check:
+    """A finite number in [low, high] (or (low, high] with ``low_open``)."""
+    def check(value: Any) -> str:
+        ok = _finite(value) and (low < value if low_open else low <= value) and value <= high
+        bracket = "(" if low_open else "["
+        return "" if ok else f"must be in {bracket}{low:g}, {high:g}], got {value!r}"
+    return check
+
+
+def not_empty(value: Any) -> str:
+    """A non-empty string."""
+    return "" if isinstance(value, str) and value.strip() else "must not be empty"
+
+
+def _finite(value: Any) -> bool:
+    return (isinstance(value, (int, float)) and not isinstance(value, bool)
+            and math.isfinite(value))
