@@ -42,6 +42,7 @@ __all__ = [
     "ERROR_BAD_FRAME",
     "ERROR_UNKNOWN_TYPE",
     "ERROR_VOLTAGE_LIMIT",
+    "RIG_WATCHDOG_S",
     "ProtocolError",
     "ChecksumError",
     "Frame",
@@ -102,6 +103,12 @@ _MM_PER_COUNT = (LASER_MAX_MM - LASER_MIN_MM) / _LASER_FULL_SCALE
 ERROR_BAD_FRAME = 1  # the rig received a frame with a bad CRC
 ERROR_UNKNOWN_TYPE = 2  # the rig received a frame of a type it does not handle
 ERROR_VOLTAGE_LIMIT = 3  # a setpoint beyond the firmware limit was clamped
+
+# Firmware watchdog: the rig sets the H-bridge to 0 V when no SET_VOLTAGE frame with a good CRC
+# has arrived for this long. 200 ms lies below the double layer's charging time constant (about
+# 0.3 s), so a PC that stops leaves the strip driven for less than one time constant, and spans
+# four of the PC's 50 ms keepalive periods, so one or two late frames do not trip it.
+RIG_WATCHDOG_S = 0.2
 
 
 def frame_length(msg_type: int) -> int:
