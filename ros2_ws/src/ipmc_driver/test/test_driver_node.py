@@ -1,13 +1,18 @@
 """The driver node in process, the test playing the rig on the other end of a pty.
 
 Precise control of what the "rig" sends: stamps from the counter, dropped samples, out-of-range
-readings, the voltage limit, the watchdog, 0 V on destroy, parameter validation. The whole graph
+readings, the voltage limit, non-finite commands, the watchdog, the repeated setpoint that feeds
+the rig's watchdog, 0 V on destroy, parameter validation (a table of bad values, each at start-up
+and at run time). The link's logic without ROS is test_link.py; the whole graph
 with the emulator and the recorder as processes is tests/test_driver_graph.py.
 """
 
 from __future__ import annotations
 
+import math
 import os
+import subprocess
+import sys
 import time
 import tty
 
@@ -124,7 +129,7 @@ class Rig:
 
 def test_stamps_from_counter_and_dropped_samples(graph):
     driver, rig = graph
-    rig.wait(lambda: driver.link_state == "connected")
+    rig.wait(lambda: driver.link.state == "connected")
     geo = ArcGeometry()
     for counter in (100, 101, 102, 105, 106):
         rig.send(Sample(counter, 0.5, geo.reading(-counter * 0.01)))
@@ -136,7 +141,7 @@ def test_stamps_from_counter_and_dropped_samples(graph):
     assert [y * 1e3 for _, y in rig.disp] == pytest.approx([-1.0, -1.01, -1.02, -1.05, -1.06],
                                                           abs=5e-3)
     assert all(v[1] == pytest.approx(0.5) for v in rig.volt)
-    assert driver.dropped == 2
+    assert driver.link.counter.dropped == 2
     # A repeated (or older) counter is not a new sample.
     rig.send(Sample(106, 0.5, 150.0))
     rig.spin(0.1)
@@ -145,7 +150,7 @@ def test_stamps_from_counter_and_dropped_samples(graph):
 
 def test_out_of_range_readings_counted_not_published(graph):
     driver, rig = graph
-    rig.wait(lambda: driver.link_state == "connected")
+    rig.wait(lambda: driver.link.state == "connected")
     lo, hi = ArcGeometry().reading_range_mm
     rig.send(Sample(1, 0.0, 150.0))
     rig.send(Sample(2, 0.0, hi + 1.0))  # beyond Eq. 1's range
@@ -155,15 +160,15 @@ def test_out_of_range_readings_counted_not_published(graph):
     rig.wait(lambda: len(rig.disp) == 2)
     rig.spin(0.1)
     assert len(rig.disp) == len(rig.volt) == 2
-    assert driver.out_of_range == 3
+    assert driver.link.out_of_range == 3
     assert rig.disp[1][0] - rig.disp[0][0] == 4 * PERIOD_NS
 
 
-def test_commands_limited_to_u_max_and_nan_ignored(graph):
+def test_commands_limited_to_u_max(graph):
     driver, rig = graph
-    rig.wait(lambda: driver.link_state == "connected")
+    rig.wait(lambda: driver.link.state == "connected")
     rig.wait(lambda: rig.command.get_subscription_count() >= 1)
-    for v in (1.25, 5.0, -7.0, float("nan")):
+    for v in (1.25, 5.0, -7.0):
         rig.command.publish(Float64(data=v))
         rig.spin(0.05)
     # the watchdog's 0 V may follow 0.3 s after the last command, before a loaded machine
@@ -171,43 +176,157 @@ def test_commands_limited_to_u_max_and_nan_ignored(graph):
     rig.wait(lambda: [c for c in rig.commands if c != 0.0][-2:] == [3.0, -3.0])
     assert 1.25 in rig.commands
     assert max(abs(v) for v in rig.commands) <= 3.0
-    assert driver.clamped == 2
+    assert driver.link.clamped == 2
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_non_finite_command_sends_zero_volts_at_once(graph, bad):
+    driver, rig = graph
+    driver.set_parameters([Parameter("watchdog_s", value=30.0)])  # only the command acts
+    rig.wait(lambda: driver.link.state == "connected")
+    rig.wait(lambda: rig.command.get_subscription_count() >= 1)
+    rig.command.publish(Float64(data=-3.0))
+    rig.wait(lambda: rig.commands and rig.commands[-1] == -3.0)
+    rig.command.publish(Float64(data=bad))
+    rig.wait(lambda: rig.commands[-1] == 0.0)
+    after = rig.commands[rig.commands.index(-3.0):]
+    # -3 V (and its repeats) until the non-finite command, then 0 V: nothing in between.
+    assert set(after) == {-3.0, 0.0}
+    assert after == sorted(after)
+    assert driver.link.non_finite == 1
+    assert driver.link.watchdog_trips == 0
+
+
+def test_setpoint_repeated_without_new_commands(graph):
+    driver, rig = graph
+    driver.set_parameters([Parameter("watchdog_s", value=30.0)])
+    rig.wait(lambda: driver.link.state == "connected")
+    rig.wait(lambda: rig.command.get_subscription_count() >= 1)
+    rig.command.publish(Float64(data=1.5))
+    rig.wait(lambda: rig.commands and rig.commands[-1] == 1.5)
+    first = len(rig.commands)
+    # The rig's watchdog needs a SET_VOLTAGE every 100 ms: the driver repeats the setpoint.
+    rig.wait(lambda: len(rig.commands) >= first + 5)
+    assert rig.commands[first:] == [1.5] * (len(rig.commands) - first)
+    assert driver.link.keepalives >= 5
 
 
 def test_watchdog_commands_zero_volts(graph):
     driver, rig = graph
-    rig.wait(lambda: driver.link_state == "connected")
+    rig.wait(lambda: driver.link.state == "connected")
     rig.wait(lambda: rig.command.get_subscription_count() >= 1)
     rig.command.publish(Float64(data=2.0))
     rig.wait(lambda: rig.commands and rig.commands[-1] == 2.0)
     t0 = time.monotonic()
     rig.wait(lambda: rig.commands[-1] == 0.0, timeout_s=2.0)
     assert 0.25 < time.monotonic() - t0 < 0.6
-    assert driver.watchdog_tripped
+    assert driver.link.watchdog_tripped
 
 
 def test_destroy_node_commands_zero_then_closes(graph):
     driver, rig = graph
-    rig.wait(lambda: driver.link_state == "connected")
+    rig.wait(lambda: driver.link.state == "connected")
     rig.wait(lambda: rig.command.get_subscription_count() >= 1)
     rig.command.publish(Float64(data=-1.5))
     rig.wait(lambda: rig.commands and rig.commands[-1] == -1.5)
     driver.destroy_node()
     rig.spin(0.05)
     assert rig.commands[-1] == 0.0
-    assert driver.link_state == "disconnected"
+    assert driver.link.state == "disconnected"
 
 
-@pytest.mark.parametrize(
-    "name, value, reason",
-    [("u_max", 5.0, "u_max must be in"), ("u_max", 0.0, "u_max must be in"),
-     ("watchdog_s", 0.0, "watchdog_s must be > 0"), ("arc_l2_mm", 30.0, "l2_mm must be in")],
-)
-def test_bad_parameters_rejected_with_reason(graph, name, value, reason):
+# Each bad value, the reason given at start-up, the reason given at run time (read-only
+# parameters are refused as such while the node runs).
+READ_ONLY = "read-only"
+WRONG_TYPE = "Wrong parameter type"
+BAD_PARAMETERS = [
+    ("u_max", 5.0, "u_max must be in (0, 3.0] V", None),
+    ("u_max", 0.0, "u_max must be in (0, 3.0] V", None),
+    ("u_max", -1.0, "u_max must be in (0, 3.0] V", None),
+    ("u_max", math.nan, "u_max must be in (0, 3.0] V", None),
+    ("u_max", "abc", "u_max must be a number with a decimal point", WRONG_TYPE),
+    ("u_max", 3, "u_max must be a number with a decimal point such as u_max:=3.0, got 3",
+     WRONG_TYPE),
+    ("watchdog_s", 0.0, "watchdog_s must be > 0 s", None),
+    ("watchdog_s", -0.5, "watchdog_s must be > 0 s", None),
+    ("watchdog_s", math.inf, "watchdog_s must be > 0 s (and finite)", None),
+    ("watchdog_s", "abc", "watchdog_s must be a number with a decimal point", WRONG_TYPE),
+    ("stale_s", -1.0, "stale_s must be > 0 s", None),
+    ("stale_s", 0.0, "stale_s must be > 0 s", None),
+    ("arc_l2_mm", 30.0, "arc_l2_mm must be in (0, l1_mm=27.0)", None),
+    ("arc_l1_mm", -1.0, "arc_l1_mm must be > 0", None),
+    ("arc_d_mm", math.nan, "arc_d_mm must be a finite number", None),
+    ("sample_rate_hz", 0.0, "sample_rate_hz must be in (0, 65535] Hz", READ_ONLY),
+    ("sample_rate_hz", -100.0, "sample_rate_hz must be in (0, 65535] Hz", READ_ONLY),
+    ("baudrate", 0, "baudrate must be an integer in (0, 4000000]", READ_ONLY),
+    ("baudrate", 115200.0, "baudrate must be an integer such as baudrate:=115200", READ_ONLY),
+    ("diagnostics_period_s", -1.0, "diagnostics_period_s must be > 0 s", READ_ONLY),
+    ("diagnostics_period_s", 0.0, "diagnostics_period_s must be > 0 s", READ_ONLY),
+    ("port", "", "port must name the serial device", READ_ONLY),
+    ("frame_id", "", "frame_id must name a frame", READ_ONLY),
+]
+
+
+@pytest.fixture
+def bare_context():
+    """An rclpy context and a pty for drivers that are expected not to start."""
+    keys = {"ROS_DOMAIN_ID": str(215 + os.getpid() % 18),
+            "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    old = {k: os.environ.get(k) for k in keys}
+    os.environ.update(keys)
+    master, slave = os.openpty()
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        yield context, os.ttyname(slave)
+    finally:
+        rclpy.try_shutdown(context=context)
+        os.close(master)
+        os.close(slave)
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+@pytest.mark.parametrize("name, value, at_start, at_run", BAD_PARAMETERS)
+def test_bad_parameter_refused_at_start_up_with_reason(bare_context, name, value, at_start,
+                                                       at_run):
+    context, port = bare_context
+    overrides = [Parameter("port", value=port), Parameter(name, value=value)]
+    with pytest.raises(ValueError) as refused:
+        Driver(context=context, parameter_overrides=overrides)
+    assert at_start in str(refused.value)
+    assert "\n" not in str(refused.value)
+
+
+@pytest.mark.parametrize("name, value, at_start, at_run", BAD_PARAMETERS)
+def test_bad_parameter_refused_at_run_time_with_reason(graph, name, value, at_start, at_run):
     driver, _ = graph
+    before = driver.get_parameter(name).value
     result = driver.set_parameters([Parameter(name, value=value)])[0]
     assert not result.successful
-    assert reason in result.reason
+    assert (at_run or at_start) in result.reason
+    assert driver.get_parameter(name).value == before
+    assert driver.link.config.as_parameters().get(name, before) == before
+
+
+@pytest.mark.parametrize("arg, reason", [
+    ("watchdog_s:=abc", "parameter watchdog_s must be a number with a decimal point"),
+    ("stale_s:=-1.0", "stale_s must be > 0 s"),
+])
+def test_driver_process_with_bad_parameter_exits_with_one_sentence(arg, reason):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(215 + os.getpid() % 18),
+               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    done = subprocess.run([sys.executable, "-m", "ipmc_driver.nodes.driver", "--ros-args",
+                           "-p", "port:=/dev/null", "-p", arg],
+                          env=env, capture_output=True, text=True, timeout=60)
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 1
+    assert len(lines) == 1 and lines[0].startswith("driver: error: ")
+    assert reason in lines[0]
+    assert "Traceback" not in done.stderr + done.stdout
 
 
 def test_good_parameters_applied(graph):
@@ -215,7 +334,7 @@ def test_good_parameters_applied(graph):
     results = driver.set_parameters([Parameter("u_max", value=2.0),
                                      Parameter("arc_l2_mm", value=15.0)])
     assert all(r.successful for r in results)
-    assert driver.u_max == 2.0
-    assert driver.geometry.l2_mm == 15.0
+    assert driver.link.config.u_max_v == 2.0
+    assert driver.link.config.geometry.l2_mm == 15.0
     result = driver.set_parameters([Parameter("port", value="/dev/null")])[0]
     assert not result.successful  # read-only
