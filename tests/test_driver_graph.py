@@ -7,7 +7,8 @@ One scenario, in phases, so the graph comes up once (the machine is small):
 2. faults (garbage, bad CRC, truncated and dropped frames, unplug for 1 s): the driver keeps
    running, publishes no bad sample, counts the faults on /diagnostics and resumes within 2 s of
    the device returning;
-3. commands stop: the watchdog drives the rig to 0 V;
+3. commands stop: the watchdog drives the rig to 0 V; the rig's own watchdog (200 ms) acts only
+   while the device is unplugged: otherwise the driver's repeated setpoint holds it off;
 4. SIGINT while a voltage is applied: the driver commands 0 V on its way out; every process exits
    within 2 s of SIGINT.
 """
@@ -289,6 +290,10 @@ def test_driver_through_emulator_link_with_faults_watchdog_and_shutdown(ros_env,
     zero_events = [t for t, e in events if e == "setpoint 0.000" and t > t_sigint]
     assert zero_events and zero_events[0] - t_sigint < WATCHDOG_S - 0.2
     assert setpoints[-1] == 0.0
+    # The rig's watchdog: only with the device unplugged (no command can arrive).
+    t_unplugged = next(t for t, e in events if e == "unplugged")
+    rig_trips = [t for t, e in events if e.startswith("watchdog")]
+    assert all(t_unplugged < t < t_replug for t in rig_trips), (rig_trips, t_unplugged, t_replug)
 
     # The bag: the plant's response, every sample one of the rig's intact frames.
     disp, volt = read_bag(bag)

@@ -3,7 +3,9 @@
 It opens a pty (a real tty device), runs the simulated plant (``IpmcPlant``) in real time at the
 configured sample rate and speaks the RS-485 protocol of ``ipmc_driver.protocol`` on it: one
 SAMPLE frame per sampling period (sample counter, applied voltage, raw laser reading), a STATUS
-heartbeat every second and on PING, SET_VOLTAGE frames in. The tip displacement y of the plant is
+heartbeat every second and on PING, SET_VOLTAGE frames in. Like the firmware, it sets the H-bridge
+to 0 V when no SET_VOLTAGE frame has arrived for ``RIG_WATCHDOG_S`` (a PC or a cable that died
+must not leave the actuator driven). The tip displacement y of the plant is
 turned into the raw laser reading x by the inverse of Eq. 1 (``ArcGeometry.reading``) and
 quantised to the 16-bit laser counts of the protocol, so the driver's arc compensation gives y
 back.
@@ -51,6 +53,7 @@ from .protocol import (
     FLAG_VOLTAGE_CLAMPED,
     LASER_MAX_MM,
     LASER_MIN_MM,
+    RIG_WATCHDOG_S,
     FrameDecoder,
     Ping,
     ProtocolError,
@@ -122,6 +125,9 @@ class RigEmulator:
         Firmware voltage limit, V (setpoints beyond it are clamped and flagged).
     seed : int
         Seed of the garbage bytes.
+    watchdog_s : float
+        Firmware watchdog, s: the setpoint falls to 0 V at the first sample due this long after
+        the last SET_VOLTAGE frame received (default ``RIG_WATCHDOG_S``).
     log_path : str or Path, optional
         CSV log, one row per sample: ``counter,t_s,setpoint_v,u_applied_v,y_mm,x_mm,sent``
         (``sent`` is 1 when the sample frame went out intact).
@@ -138,16 +144,22 @@ class RigEmulator:
         geometry: ArcGeometry | None = None,
         u_limit_v: float = 3.0,
         seed: int = 0,
+        watchdog_s: float = RIG_WATCHDOG_S,
         log_path: str | Path | None = None,
         events=None,
     ):
         if not (math.isfinite(sample_rate_hz) and 0 < sample_rate_hz <= 65535):
             raise ValueError(f"sample_rate_hz must be in (0, 65535], got {sample_rate_hz}")
+        if not (math.isfinite(watchdog_s) and watchdog_s > 0):
+            raise ValueError(f"watchdog_s must be a finite number > 0, got {watchdog_s}")
         self.plant = plant
         self.sample_rate_hz = float(sample_rate_hz)
         self.link_path = Path(link_path)
         self.geometry = geometry or ArcGeometry()
         self.u_limit_v = float(u_limit_v)
+        self.watchdog_s = float(watchdog_s)
+        self.watchdog_trips = 0
+        self._last_command_at = -math.inf  # monotonic time of the last SET_VOLTAGE received
         self._rng = np.random.default_rng(seed)
         self._events = events
         self._faults: queue.SimpleQueue[Fault] = queue.SimpleQueue()
@@ -284,6 +296,7 @@ class RigEmulator:
                     self._send(encode_message(RigError(ERROR_UNKNOWN_TYPE, frame.msg_type), 0))
                     continue
                 if isinstance(msg, SetVoltage):
+                    self._last_command_at = time.monotonic()
                     self._command_seq = frame.seq
                     if msg.voltage_v != self._setpoint_v:
                         self._event(f"setpoint {msg.voltage_v:.3f}")
@@ -294,6 +307,15 @@ class RigEmulator:
                     self._send(encode_message(RigError(ERROR_UNKNOWN_TYPE, frame.msg_type), 0))
             if self._rx.stats.bad_crc + self._rx.stats.truncated > bad_before:
                 self._send(encode_message(RigError(ERROR_BAD_FRAME, 0), self._next_seq()))
+
+    def _check_watchdog(self, due_at: float) -> None:
+        """Zero the setpoint when the sample due at ``due_at`` comes ``watchdog_s`` or more
+        after the last command. Judged in rig time: samples a starved loop produces late, after
+        reading a command that waited in the pty, are not counted as a silent PC."""
+        if self._setpoint_v != 0.0 and due_at - self._last_command_at > self.watchdog_s:
+            self._setpoint_v = 0.0
+            self.watchdog_trips += 1
+            self._event(f"watchdog 0 V after {self.watchdog_s * 1e3:g} ms without a command")
 
     def _status(self) -> Status:
         return Status(self._counter, round(self.sample_rate_hz), self._setpoint_v, 0)
@@ -359,6 +381,7 @@ class RigEmulator:
                 if self._pending["garbage"] and not silent:
                     out += self._rng.integers(0, 256, self._pending["garbage"], np.uint8).tobytes()
                     self._pending["garbage"] = 0
+                self._check_watchdog(due_at)
                 frame, row = self._sample_frame()
                 if silent:
                     row[-1] = 0
@@ -426,7 +449,7 @@ def _build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--events", action="store_true",
         help="after the path, print one stdout line per event: '<time.monotonic()> <event>' "
-        "(fault ..., setpoint V, unplugged, replugged)"
+        "(fault ..., setpoint V, watchdog ..., unplugged, replugged)"
     )
     parser.add_argument("--duration-s", type=float, default=None, help="stop after this time")
     return parser

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import os
 import signal
@@ -19,6 +20,7 @@ from ipmc_driver.emulator import Fault, RigEmulator, parse_fault
 from ipmc_driver.plant import IpmcPlant
 from ipmc_driver.protocol import (
     FLAG_VOLTAGE_CLAMPED,
+    RIG_WATCHDOG_S,
     FrameDecoder,
     Sample,
     SetVoltage,
@@ -28,16 +30,27 @@ from ipmc_driver.protocol import (
 )
 
 RATE_HZ = 200.0
+# Most tests send one command and read for a while: a firmware watchdog far longer than any
+# test keeps the command applied whatever the scheduling of this process. The watchdog's own
+# tests use the protocol's value.
+LONG_WATCHDOG_S = 30.0
 
 
 @pytest.fixture
 def rig(tmp_path):
     """An emulator running in a thread; yields (emulator, open serial port, log path)."""
+    with running_rig(tmp_path, LONG_WATCHDOG_S) as running:
+        yield running
+
+
+@contextlib.contextmanager
+def running_rig(tmp_path, watchdog_s: float):
     log = tmp_path / "rig.csv"
     emu = RigEmulator(
         IpmcPlant(seed=1, dt_s=1.0 / RATE_HZ),
         sample_rate_hz=RATE_HZ,
         link_path=tmp_path / "ttyRIG",
+        watchdog_s=watchdog_s,
         log_path=log,
     )
     emu.open_device()
@@ -263,3 +276,46 @@ def test_cli_prints_path_takes_faults_and_exits_on_sigint(tmp_path):
         rows = list(csv.DictReader(f))
     assert [int(r["counter"]) for r in rows] == list(range(len(rows)))
     assert sum(r["sent"] == "0" for r in rows) == 2
+
+
+def test_watchdog_zeroes_setpoint_without_valid_commands(tmp_path):
+    with running_rig(tmp_path, RIG_WATCHDOG_S) as (emu, port, _):
+        dec = FrameDecoder()
+        read_for(port, dec, 0.05)
+        good = encode_message(SetVoltage(1.5), seq=9)
+        port.write(good)
+        damaged = good[:-1] + bytes([good[-1] ^ 0xFF])  # a SET_VOLTAGE with a bad CRC
+        samples: list[Sample] = []
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline:
+            port.write(damaged)  # does not feed the watchdog
+            samples += samples_of(read_for(port, dec, 0.05))
+            held = [s for s in samples if s.command_seq == 9]
+            if held and held[-1].applied_v == 0.0:
+                break
+        applied = [s.applied_v for s in samples if s.command_seq == 9]
+        assert applied and applied[-1] == 0.0, "the rig kept the voltage without commands"
+        at_command = [v for v in applied if v == pytest.approx(1.5, abs=1e-3)]
+        # Not before the watchdog period (in rig time: one sample per period).
+        assert len(at_command) >= RIG_WATCHDOG_S * RATE_HZ - 2
+        assert applied == at_command + [0.0] * (len(applied) - len(at_command))
+        assert emu.watchdog_trips == 1
+        # A valid command applies again at once.
+        port.write(encode_message(SetVoltage(-1.0), seq=10))
+        again = [s for s in samples_of(read_for(port, dec, 0.1)) if s.command_seq == 10]
+        assert again and again[0].applied_v == pytest.approx(-1.0, abs=1e-3)
+
+
+def test_watchdog_held_off_by_repeated_commands(tmp_path):
+    # Half a second: this test's own scheduling may delay a frame by much more than the
+    # protocol's 50 ms keepalive period without the rig tripping.
+    with running_rig(tmp_path, 0.5) as (emu, port, _):
+        dec = FrameDecoder()
+        samples: list[Sample] = []
+        for seq in range(1, 31):
+            port.write(encode_message(SetVoltage(1.0), seq=seq))
+            samples += samples_of(read_for(port, dec, 0.05))
+        applied = [s.applied_v for s in samples if s.command_seq > 0]
+        assert len(applied) > 100
+        assert applied == pytest.approx([1.0] * len(applied), abs=1e-3)
+        assert emu.watchdog_trips == 0
