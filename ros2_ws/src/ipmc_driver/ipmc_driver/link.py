@@ -58,8 +58,9 @@ __all__ = [
     "OK",
     "WARN",
     "ERROR",
-    "ParameterSpec",
-    "PARAMETERS",
+    "DriverParameter",
+    "DRIVER_PARAMETERS",
+    "check_parameter",
     "check_parameters",
     "LinkConfig",
     "SampleCounter",
@@ -84,29 +85,28 @@ OK, WARN, ERROR = 0, 1, 2  # diagnostic levels (diagnostic_msgs/DiagnosticStatus
 
 # --------------------------------------------------------------------------- parameters
 @dataclass(frozen=True)
-class ParameterSpec:
-    """One driver parameter: name, default (its type is the parameter's type), description."""
+class DriverParameter:
+    """One driver parameter: default (its type is the parameter's type), meaning, read-only."""
 
-    name: str
     default: object
     description: str
     read_only: bool = False
 
 
-PARAMETERS: tuple[ParameterSpec, ...] = (
-    ParameterSpec("port", "/dev/ttyUSB0", "serial device of the RS-485 adapter", True),
-    ParameterSpec("baudrate", 115200, "serial baud rate", True),
-    ParameterSpec("sample_rate_hz", 100.0,
-                  "sample rate of the rig firmware (Hz); stamps = t0 + counter / rate", True),
-    ParameterSpec("arc_l1_mm", L1_MM, "Eq. 1: actuator length L1 (mm)"),
-    ParameterSpec("arc_l2_mm", L2_MM, "Eq. 1: clamp to laser line L2 (mm), 0 < L2 < L1"),
-    ParameterSpec("arc_d_mm", D_MM, "Eq. 1: laser reading at rest d (mm)"),
-    ParameterSpec("u_max", U_MAX_LIMIT_V, f"command limit (V), 0 < u_max <= {U_MAX_LIMIT_V}"),
-    ParameterSpec("watchdog_s", 0.5, "no command for this long -> command 0 V (s)"),
-    ParameterSpec("stale_s", 0.25, "no sample for this long while connected -> link WARN (s)"),
-    ParameterSpec("diagnostics_period_s", 1.0, "period of /diagnostics (s)", True),
-    ParameterSpec("frame_id", "ipmc_clamp", "frame of /ipmc/displacement", True),
-)
+DRIVER_PARAMETERS: dict[str, DriverParameter] = {
+    "port": DriverParameter("/dev/ttyUSB0", "serial device of the RS-485 adapter", True),
+    "baudrate": DriverParameter(115200, "serial baud rate", True),
+    "sample_rate_hz": DriverParameter(
+        100.0, "sample rate of the rig firmware (Hz); stamps = t0 + counter / rate", True),
+    "arc_l1_mm": DriverParameter(L1_MM, "Eq. 1: actuator length L1 (mm)"),
+    "arc_l2_mm": DriverParameter(L2_MM, "Eq. 1: clamp to laser line L2 (mm), 0 < L2 < L1"),
+    "arc_d_mm": DriverParameter(D_MM, "Eq. 1: laser reading at rest d (mm)"),
+    "u_max": DriverParameter(U_MAX_LIMIT_V, f"command limit (V), 0 < u_max <= {U_MAX_LIMIT_V}"),
+    "watchdog_s": DriverParameter(0.5, "no command for this long -> command 0 V (s)"),
+    "stale_s": DriverParameter(0.25, "no sample for this long while connected -> link WARN (s)"),
+    "diagnostics_period_s": DriverParameter(1.0, "period of /diagnostics (s)", True),
+    "frame_id": DriverParameter("ipmc_clamp", "frame of /ipmc/displacement", True),
+}
 
 
 def _is_number(value: object) -> bool:
@@ -135,13 +135,22 @@ _RULES: dict[str, tuple[Callable[[object], bool], str]] = {
 }
 
 
+def check_parameter(name: str, value: object) -> str:
+    """Why the driver refuses ``value`` for parameter ``name`` alone ("must be ..., got ..."),
+    or ``""``; the end of a sentence that starts with the parameter's name."""
+    rule = _RULES.get(name)
+    if rule is None or rule[0](value):
+        return ""
+    return f"{rule[1]}, got {value!r}"
+
+
 def check_parameters(values: Mapping[str, object]) -> str:
     """The reason the first unacceptable driver parameter in ``values`` is refused, or ``""``.
 
     Parameters
     ----------
     values : mapping
-        Parameter name -> value, the names of ``PARAMETERS`` (any subset). When the three
+        Parameter name -> value, the names of ``DRIVER_PARAMETERS`` (any subset). When the three
         ``arc_*`` lengths are all given, they must also form a valid ``ArcGeometry``.
 
     Returns
@@ -151,15 +160,15 @@ def check_parameters(values: Mapping[str, object]) -> str:
         every value is acceptable.
     """
     for name, value in values.items():
-        rule = _RULES.get(name)
-        if rule is not None and not rule[0](value):
-            return f"{name} {rule[1]}, got {value!r}"
+        why = check_parameter(name, value)
+        if why:
+            return f"parameter {name} {why}"
     arc = [values.get(n) for n in ("arc_l1_mm", "arc_l2_mm", "arc_d_mm")]
     if all(v is not None for v in arc):
         try:
             ArcGeometry(*arc)
         except ValueError as exc:
-            return f"arc_{exc}"
+            return f"parameter arc_{exc}"
     return ""
 
 
@@ -194,7 +203,7 @@ class LinkConfig:
     @classmethod
     def from_parameters(cls, values: Mapping[str, object]) -> LinkConfig:
         """Build from driver parameter values (missing names take their defaults)."""
-        defaults = {p.name: p.default for p in PARAMETERS}
+        defaults = {name: p.default for name, p in DRIVER_PARAMETERS.items()}
         v = {**defaults, **values}
         reason = check_parameters(v)
         if reason:

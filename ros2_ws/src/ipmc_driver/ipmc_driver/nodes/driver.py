@@ -20,29 +20,31 @@ this node maps topics, parameters and timers onto it.
 from __future__ import annotations
 
 import time
+from functools import partial
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PointStamped, Vector3Stamped
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
-from rclpy.exceptions import InvalidParameterTypeException
 from rclpy.node import Node
 from std_msgs.msg import Float64
 
 from ipmc_driver.link import (
-    PARAMETERS,
+    DRIVER_PARAMETERS,
     TICK_PERIOD_S,
     DriverLink,
     LinkConfig,
     LinkSample,
-    ParameterSpec,
+    check_parameter,
     check_parameters,
 )
-from ipmc_driver.node_runtime import run_node
+from ipmc_driver.node_runtime import ParameterError, ParameterSpec, declare_checked, run_node
 from ipmc_driver.qos import COMMAND_QOS, DIAGNOSTICS_QOS, SAMPLE_QOS
 
-_TYPE_NAMES = {bool: "true or false", int: "an integer", float: "a number with a decimal point",
-               str: "text"}
+# The link's table with its checks, for declare_checked (a wrong type is one sentence too).
+PARAMETERS = {name: ParameterSpec(p.default, p.description, p.read_only,
+                                  partial(check_parameter, name))
+              for name, p in DRIVER_PARAMETERS.items()}
 
 
 class Driver(Node):
@@ -50,10 +52,10 @@ class Driver(Node):
         # node_kwargs (context, parameter_overrides) let tests build the node in process.
         super().__init__("driver", **node_kwargs)
         try:
-            values = self._declare_parameters()
-            reason = check_parameters(values)
+            values = declare_checked(self, PARAMETERS)
+            reason = check_parameters(values)  # the three arc lengths together
             if reason:
-                raise ValueError(reason)
+                raise ParameterError(reason)
         except ValueError:
             Node.destroy_node(self)
             raise
@@ -80,27 +82,8 @@ class Driver(Node):
             f"u_max {c.u_max_v:g} V, watchdog {c.watchdog_s:g} s")
 
     # ------------------------------------------------------------------ parameters
-    def _declare_parameters(self) -> dict[str, object]:
-        """Declare every parameter of ``PARAMETERS``; a value of the wrong type is a
-        ``ValueError`` in one sentence (rclpy's own exception is a long traceback)."""
-        for spec in PARAMETERS:
-            descriptor = ParameterDescriptor(description=spec.description,
-                                             read_only=spec.read_only)
-            try:
-                self.declare_parameter(spec.name, spec.default, descriptor)
-            except InvalidParameterTypeException:
-                raise ValueError(self._type_error(spec)) from None
-        return self._parameter_values()
-
-    def _type_error(self, spec: ParameterSpec) -> str:
-        # rclpy keeps the command line's values by name; the exception holds only a message.
-        given = getattr(self, "_parameter_overrides", {}).get(spec.name)
-        got = "a value of another type" if given is None else repr(given.value)
-        return (f"parameter {spec.name} must be {_TYPE_NAMES[type(spec.default)]} such as "
-                f"{spec.name}:={spec.default}, got {got}")
-
     def _parameter_values(self) -> dict[str, object]:
-        return {spec.name: self.get_parameter(spec.name).value for spec in PARAMETERS}
+        return {name: self.get_parameter(name).value for name in PARAMETERS}
 
     def _validate_parameters(self, params) -> SetParametersResult:
         values = self._parameter_values() | {p.name: p.value for p in params}
