@@ -33,6 +33,7 @@ import csv
 import math
 import os
 import queue
+import select
 import signal
 import sys
 import tempfile
@@ -277,17 +278,20 @@ class RigEmulator:
         self._tx_seq = (seq + 1) & 0xFF
         return seq
 
-    def _receive(self) -> None:
+    def _receive(self) -> bool:
+        """Handle the frames the PC sent; False when there was nothing to read."""
         if self._master is None:
-            return
+            return False
+        got = False
         while True:
             try:
                 data = os.read(self._master, 4096)
             except (BlockingIOError, OSError):
                 # EAGAIN: nothing to read; EIO: no client has the slave open.
-                return
+                return got
             if not data:
-                return
+                return got
+            got = True
             bad_before = self._rx.stats.bad_crc + self._rx.stats.truncated
             for frame in self._rx.feed(data):
                 try:
@@ -398,7 +402,21 @@ class RigEmulator:
                 self._log_file.flush()
             sleep_s = start + produced * period - time.monotonic()
             if sleep_s > 0:
-                stop.wait(min(sleep_s, 0.05))
+                self._wait(stop, min(sleep_s, 0.05))
+
+    def _wait(self, stop: threading.Event, timeout_s: float) -> None:
+        """Wait for the next sample, waking for bytes from the PC: a command is taken (and
+        feeds the watchdog) when it arrives, as by the firmware's UART interrupt, and applied
+        from the next sample on."""
+        if self._master is None:
+            stop.wait(timeout_s)
+            return
+        try:
+            readable, _, _ = select.select([self._master], [], [], timeout_s)
+        except (OSError, ValueError):
+            readable = []
+        if readable and not self._receive():
+            stop.wait(timeout_s)  # readable without data (a hang-up): do not spin
 
 
 def _read_stdin(emulator: RigEmulator, fd: int = 0) -> None:

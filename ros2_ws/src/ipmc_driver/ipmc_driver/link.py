@@ -252,13 +252,15 @@ class SampleCounter:
 @dataclass(frozen=True)
 class LinkSample:
     """One sample ready to publish: unwrapped counter, stamp (ns on the node's clock), applied
-    and requested voltage (V), arc-compensated tip displacement (mm)."""
+    and requested voltage (V), arc-compensated tip displacement (mm), and the time its frame
+    arrived (s, the link's clock)."""
 
     counter: int
     stamp_ns: int
     applied_v: float
     requested_v: float
     y_mm: float
+    arrival_s: float
 
 
 @dataclass(frozen=True)
@@ -419,6 +421,11 @@ class DriverLink:
         self._diag_s = self._clock()
 
     # ------------------------------------------------------------------ state
+    @property
+    def tx_seq(self) -> int:
+        """Sequence number of the last SET_VOLTAGE frame built (1..255; 0 before the first)."""
+        return self._tx_seq
+
     @property
     def state(self) -> str:
         """``"disconnected"``, ``"connected"``, or ``"connecting"`` inside an open attempt."""
@@ -653,7 +660,7 @@ class DriverLink:
         self.published += 1
         return LinkSample(counter, self._t0_ns + int(counter * self._period_ns),
                           sample.applied_v, self._requested_by_seq.get(sample.command_seq, 0.0),
-                          geometry.compensate_scalar(sample.laser_mm))
+                          geometry.compensate_scalar(sample.laser_mm), arrival_s)
 
     # ------------------------------------------------------------------ diagnostics
     def diagnostics(self, now_s: float) -> list[StatusReport]:
