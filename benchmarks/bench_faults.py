@@ -33,6 +33,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -101,7 +102,7 @@ class Runner:
     connected_at: list[float] = field(default_factory=list)
     label: str = ""
 
-    def run(self, seconds: float, command=None) -> None:
+    def run(self, seconds: float, command: Callable[[float], float] | None = None) -> None:
         """Tick for ``seconds``; ``command(t)`` gives the voltage to command every 50 ms."""
         end = time.monotonic() + seconds
         next_command = 0.0

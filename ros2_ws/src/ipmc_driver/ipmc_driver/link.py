@@ -274,7 +274,7 @@ class StatusReport:
 
 
 # --------------------------------------------------------------------------- the port
-def open_serial_port(path: str, baudrate: int):
+def open_serial_port(path: str, baudrate: int) -> object:
     """Open ``path`` with pyserial (read timeout 50 ms: the reader thread checks its stop flag)."""
     import serial  # pyserial; imported here so that the pure parts load without it
 

@@ -1,4 +1,5 @@
-"""Rig emulator on a real pty: stream, commands, every fault kind, unplug, the CLI."""
+"""Rig emulator on a real pty: stream, commands, every fault kind, unplug, the firmware
+watchdog, the CLI."""
 
 from __future__ import annotations
 
