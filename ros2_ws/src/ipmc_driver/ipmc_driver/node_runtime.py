@@ -168,7 +168,7 @@ class ParameterSpec:
 
 # How a value of each rclpy type is written on the command line.
 _TYPE_WORDS = {
-    "DOUBLE": "a float (write 2.0, not 2)", "INTEGER": "an integer", "BOOL": "true or false",
+    "DOUBLE": "a float", "INTEGER": "an integer", "BOOL": "true or false",
     "STRING": "a string", "DOUBLE_ARRAY": "a list of floats, e.g. [0.0, 0.7]",
     "INTEGER_ARRAY": "a list of integers, e.g. [1, 2]", "BOOL_ARRAY": "a list of true/false",
     "STRING_ARRAY": "a list of strings, e.g. [a, b]", "BYTE_ARRAY": "a list of bytes"}
@@ -182,10 +182,12 @@ def describe_parameter_error(exc: Exception) -> str:
              if isinstance(exc, InvalidParameterTypeException) else None)
     if found is None:
         return str(exc)
-    expected = found["expected"]
+    expected, given, value = found["expected"], found["given"], found["value"]
     words = _TYPE_WORDS.get(expected, expected.lower())
-    return (f"parameter {found['name']} must be {words}, got {found['value']} "
-            f"({found['given'].lower().replace('_', ' ')})")
+    if (expected, given) == ("DOUBLE", "INTEGER"):
+        words += f" (write {value}.0, not {value})"
+    return (f"parameter {found['name']} must be {words}, got {value} "
+            f"({given.lower().replace('_', ' ')})")
 
 
 def declare_checked(node: Node, specs: dict[str, ParameterSpec]) -> dict[str, Any]:
@@ -256,6 +258,11 @@ def within(low: float, high: float, *, low_open: bool = False) -> Check:
         bracket = "(" if low_open else "["
         return "" if ok else f"must be in {bracket}{low:g}, {high:g}], got {value!r}"
     return check
+
+
+def finite(value: Any) -> str:
+    """A finite number."""
+    return "" if _finite(value) else f"must be a finite number, got {value!r}"
 
 
 def not_empty(value: Any) -> str:

@@ -29,9 +29,10 @@ refuses the change with its reason; the time base continues.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 from geometry_msgs.msg import PointStamped
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMsg
@@ -39,27 +40,72 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from ipmc_control.pid import ControlParameterError
 from ipmc_control.references import KINDS, Reference, make_reference
 from ipmc_driver.matching import MatchGate
-from ipmc_driver.node_runtime import run_node
+from ipmc_driver.node_runtime import (
+    ParameterSpec,
+    check_changes,
+    declare_checked,
+    finite,
+    non_negative,
+    one_of,
+    positive,
+    run_node,
+)
 from ipmc_driver.qos import LATCHED_CLOCK_QOS, PAIRED_SAMPLE_QOS
 
-# Parameter name -> (default, description); which ones each kind takes.
 # Longest catch-up burst, samples: below the subscribers' queue depth (100).
 MAX_BURST = 90
+
+
+def _pair(increasing: str, low_bound: float | None = None):
+    """A [low, high] list of two finite numbers with low < high (and low >= low_bound)."""
+    def check(value) -> str:
+        ok = (len(value) == 2 and all(math.isfinite(v) for v in value) and value[0] < value[1]
+              and (low_bound is None or value[0] >= low_bound))
+        return "" if ok else f"must be {increasing}, got {list(value)!r}"
+    return check
+
+
+def _file(value) -> str:
+    return "" if not value or Path(value).is_file() else f"names no file: {value!r}"
+
+
+def _levels(value) -> str:
+    ok = len(value) > 0 and all(math.isfinite(v) for v in value)
+    return "" if ok else f"must be one or more finite values, got {list(value)!r}"
+
+
+# The generators' parameters (ipmc_control.references), each checked on its own; a change is
+# also tried on a new generator of the kind in use (band_hz against period_s, a file's rows).
 GENERATOR_PARAMS = {
-    "value_mm": (4.0, "constant: displacement, mm"),
-    "amplitude_mm": (2.5, "sine: amplitude, mm"),
-    "frequency_hz": (1.0 / (2.0 * math.pi), "sine: frequency, Hz"),
-    "offset_mm": (0.0, "sine: mean, mm"),
-    "phase_rad": (0.0, "sine: phase at t = 0, rad"),
-    "band_hz": ([0.0, 0.7], "random: frequency band [low, high], Hz"),
-    "range_mm": ([-9.0, 4.0], "random: displacement range [min, max], mm"),
-    "n_components": (20, "random: number of sines"),
-    "period_s": (100.0, "random: repetition period, s"),
-    "seed": (0, "random: seed"),
-    "levels_mm": ([0.0, 2.0, 0.0, -2.0], "steps: levels, mm"),
-    "hold_s": (5.0, "steps: time per level, s"),
-    "repeat": (True, "steps/file: start again after the end"),
-    "path": ("", "file: CSV with columns t, y (s, mm)"),
+    "value_mm": ParameterSpec(4.0, "constant: displacement, mm", check=finite),
+    "amplitude_mm": ParameterSpec(2.5, "sine: amplitude, mm", check=finite),
+    "frequency_hz": ParameterSpec(1.0 / (2.0 * math.pi), "sine: frequency, Hz (> 0)",
+                                  check=positive),
+    "offset_mm": ParameterSpec(0.0, "sine: mean, mm", check=finite),
+    "phase_rad": ParameterSpec(0.0, "sine: phase at t = 0, rad", check=finite),
+    "band_hz": ParameterSpec([0.0, 0.7], "random: frequency band [low, high], Hz",
+                             check=_pair("[low, high] with 0 <= low < high", 0.0)),
+    "range_mm": ParameterSpec([-9.0, 4.0], "random: displacement range [min, max], mm",
+                              check=_pair("[min, max] with min < max")),
+    "n_components": ParameterSpec(20, "random: number of sines (>= 1)", check=positive),
+    "period_s": ParameterSpec(100.0, "random: repetition period, s", check=positive),
+    "seed": ParameterSpec(0, "random: seed (>= 0)", check=non_negative),
+    "levels_mm": ParameterSpec([0.0, 2.0, 0.0, -2.0], "steps: levels, mm", check=_levels),
+    "hold_s": ParameterSpec(5.0, "steps: time per level, s", check=positive),
+    "repeat": ParameterSpec(True, "steps/file: start again after the end"),
+    "path": ParameterSpec("", "file: CSV with columns t, y (s, mm)", check=_file),
+}
+PARAMETERS = {
+    "rate_hz": ParameterSpec(100.0, "publication rate, Hz", True, positive),
+    "frame_id": ParameterSpec("ipmc_clamp", "frame of the reference point", True),
+    "preview_s": ParameterSpec(
+        0.0, "publish the reference this far ahead of the clock, s (>= 0): a trajectory is "
+        "known in advance, and feedforward needs the next sample", True, non_negative),
+    "min_subscribers": ParameterSpec(
+        0, "use_sim_time: the first samples wait until /ipmc/reference has matched this many "
+        "subscriptions (and every one the graph shows, at most 5 s)", True, non_negative),
+    "kind": ParameterSpec("sine", " | ".join(KINDS), check=one_of(*KINDS)),
+    **GENERATOR_PARAMS,
 }
 KIND_PARAMS = {
     "constant": ("value_mm",),
@@ -84,35 +130,16 @@ def build_reference(kind: str, values: dict) -> Reference:
 
 
 class ReferenceNode(Node):
-    def __init__(self) -> None:
-        super().__init__("reference")
-        self.declare_parameter("rate_hz", 100.0, ParameterDescriptor(
-            description="publication rate, Hz", read_only=True))
-        self.declare_parameter("frame_id", "ipmc_clamp", ParameterDescriptor(
-            description="frame of the reference point", read_only=True))
-        self.declare_parameter("preview_s", 0.0, ParameterDescriptor(
-            description="publish the reference this far ahead of the clock, s (>= 0): a "
-                        "trajectory is known in advance, and feedforward needs the next sample",
-            read_only=True))
-        self.declare_parameter("min_subscribers", 0, ParameterDescriptor(
-            description="use_sim_time: the first samples wait until /ipmc/reference has matched "
-                        "this many subscriptions (and every one the graph shows, at most 5 s)",
-            read_only=True))
-        self.declare_parameter("kind", "sine", ParameterDescriptor(
-            description=" | ".join(KINDS)))
-        for name, (default, text) in GENERATOR_PARAMS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(description=text))
+    def __init__(self, **node_kwargs) -> None:
+        super().__init__("reference", **node_kwargs)
+        p = declare_checked(self, PARAMETERS)
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
-        self.rate_hz = float(self.get_parameter("rate_hz").value)
-        if not self.rate_hz > 0:
-            raise ControlParameterError(f"rate_hz must be > 0, got {self.rate_hz}")
-        self.frame_id = self.get_parameter("frame_id").value
-        self.preview_ns = int(round(float(self.get_parameter("preview_s").value) * 1e9))
-        if self.preview_ns < 0:
-            raise ControlParameterError(f"preview_s must be >= 0 s, got {self.preview_ns * 1e-9}")
-        self.generator = build_reference(self.get_parameter("kind").value, self._values())
+        self.rate_hz = p["rate_hz"]
+        self.frame_id = p["frame_id"]
+        self.preview_ns = int(round(p["preview_s"] * 1e9))
+        self.generator = build_reference(p["kind"], self._values())
         self._pending: Reference | None = None
         self._t0_ns: int | None = None
         self._next_k = 0   # index of the next sample to publish, stamped t0 + k / rate_hz
@@ -132,7 +159,7 @@ class ReferenceNode(Node):
             self._start_gate: MatchGate | None = MatchGate(
                 self.count_subscribers,
                 [(self.pub, "/ipmc/reference",
-                  int(self.get_parameter("min_subscribers").value))],
+                  p["min_subscribers"])],
                 warn=self.get_logger().warn)
         else:
             self._start_gate = None
@@ -147,9 +174,10 @@ class ReferenceNode(Node):
         return values
 
     def _validate_parameters(self, params) -> SetParametersResult:
+        result = check_changes(PARAMETERS, params)
         new = {p.name: p.value for p in params}
-        if not (set(new) & (set(GENERATOR_PARAMS) | {"kind"})):
-            return SetParametersResult(successful=True)
+        if not result.successful or not (set(new) & (set(GENERATOR_PARAMS) | {"kind"})):
+            return result
         kind = new.get("kind", self.get_parameter("kind").value)
         try:
             self._pending = build_reference(kind, self._values(new))

@@ -27,7 +27,6 @@ import sys
 import time
 from pathlib import Path
 
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import (
@@ -39,7 +38,14 @@ from rclpy.qos import (
 
 from ipmc_driver.bagio import BagWriter
 from ipmc_driver.matching import MatchGate
-from ipmc_driver.node_runtime import run_node
+from ipmc_driver.node_runtime import (
+    ParameterSpec,
+    check_changes,
+    declare_checked,
+    one_of,
+    positive,
+    run_node,
+)
 
 DEFAULT_TOPICS = ["/ipmc/command", "/ipmc/voltage", "/ipmc/displacement", "/ipmc/reference"]
 # docs/interfaces.md: topic -> (type, publishers known to be RELIABLE)
@@ -66,6 +72,31 @@ TICK_S = 0.1
 AWAIT_LOG_S = 5.0   # how often to say which publishers the recorder still waits for, s
 
 
+def _topics(value) -> str:
+    names = [t for t in value if t]
+    if not names:
+        return "is empty; nothing to record"
+    bad = [t for t in names if not t.startswith("/")]
+    return f"must be absolute topic names, got {bad}" if bad else ""
+
+
+# Every parameter is read-only: the bag is opened once, at start.
+PARAMETERS = {
+    "topics": ParameterSpec(list(DEFAULT_TOPICS), "topics to record", True, _topics),
+    "output": ParameterSpec("", "bag folder to create ('' = ./ipmc_bag_<YYYYmmdd_HHMMSS>)",
+                            True),
+    "storage": ParameterSpec("mcap", "rosbag2 storage: mcap | sqlite3", True,
+                             one_of(*STORAGES)),
+    "split_s": ParameterSpec(60.0, "seconds per split file; a SIGKILL loses at most the "
+                             "current one", True, positive),
+    "flush_s": ParameterSpec(1.0, "seconds between pushes of buffered messages to the split "
+                             "file", True, positive),
+    "await_publishers": ParameterSpec(
+        [""], "topics subscribed first; the others once each has matched a publisher (a "
+        "lock-step start then waits for them too)", True),
+}
+
+
 def get_message(msgtype: str):
     """The message class of ``'pkg/msg/Type'`` (rosidl_runtime_py is not on PyPI)."""
     pkg, kind, name = msgtype.split("/")
@@ -73,31 +104,15 @@ def get_message(msgtype: str):
 
 
 class Recorder(Node):
-    def __init__(self) -> None:
-        super().__init__("recorder")
-        ro = dict(read_only=True)
-        self.declare_parameter("topics", list(DEFAULT_TOPICS), ParameterDescriptor(
-            description="topics to record", **ro))
-        self.declare_parameter("output", "", ParameterDescriptor(
-            description="bag folder to create ('' = ./ipmc_bag_<YYYYmmdd_HHMMSS>)", **ro))
-        self.declare_parameter("storage", "mcap", ParameterDescriptor(
-            description="rosbag2 storage: mcap | sqlite3", **ro))
-        self.declare_parameter("split_s", 60.0, ParameterDescriptor(
-            description="seconds per split file; a SIGKILL loses at most the current one", **ro))
-        self.declare_parameter("flush_s", 1.0, ParameterDescriptor(
-            description="seconds between pushes of buffered messages to the split file", **ro))
-        self.declare_parameter("await_publishers", [""], ParameterDescriptor(
-            description="topics subscribed first; the others once each has matched a "
-                        "publisher (a lock-step start then waits for them too)", **ro))
+    def __init__(self, **node_kwargs) -> None:
+        super().__init__("recorder", **node_kwargs)
+        p = declare_checked(self, PARAMETERS)
+        self.add_on_set_parameters_callback(lambda params: check_changes(PARAMETERS, params))
 
-        topics = [t for t in self.get_parameter("topics").value if t]
-        output = self.get_parameter("output").value or time.strftime("ipmc_bag_%Y%m%d_%H%M%S")
-        storage = self.get_parameter("storage").value
-        if storage not in STORAGES:
-            raise ValueError(f"parameter storage must be one of {STORAGES}, got {storage!r}")
-        if not topics:
-            raise ValueError("parameter topics is empty; nothing to record")
-        awaited = [t for t in self.get_parameter("await_publishers").value if t]
+        topics = [t for t in p["topics"] if t]
+        output = p["output"] or time.strftime("ipmc_bag_%Y%m%d_%H%M%S")
+        storage = p["storage"]
+        awaited = [t for t in p["await_publishers"] if t]
         wrong = [t for t in awaited if t not in topics or not TOPIC_TABLE.get(t, (0, 0))[1]]
         if wrong:
             known = ", ".join(t for t, (_, reliable) in TOPIC_TABLE.items() if reliable)
@@ -105,8 +120,7 @@ class Recorder(Node):
                              f"topics with reliable publishers ({known})")
 
         self.writer = BagWriter(Path(output).resolve(), storage=storage,
-                                split_s=self.get_parameter("split_s").value,
-                                flush_s=self.get_parameter("flush_s").value)
+                                split_s=p["split_s"], flush_s=p["flush_s"])
         self._subs = {}
         self._pending = []
         for topic in awaited:
