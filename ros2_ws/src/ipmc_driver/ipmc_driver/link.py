@@ -449,6 +449,7 @@ class DriverLink:
 
     # ------------------------------------------------------------------ port (states call these)
     def note_port_absent(self) -> None:
+        """The device path is absent (said once, until it reappears)."""
         if not self._port_absent:
             self._port_absent = True
             self._log("warn", f"{self.config.port} is absent; opening it as soon as it appears")
@@ -463,11 +464,17 @@ class DriverLink:
         return True
 
     def open_port(self, now_s: float) -> _State:
+        """Open the port, start the reader, ping, send the setpoint; on failure schedule the
+        next attempt one back-off later. Returns the state the link is in afterwards."""
         self._state = _Connecting()
+        port = None
         try:
             port = self._open_port(self.config.port, self.config.baudrate)
             port.reset_input_buffer()  # bytes queued while nobody listened are stale
         except (OSError, ValueError) as exc:
+            if port is not None:
+                with contextlib.suppress(Exception):
+                    port.close()
             self.last_error = str(exc) or type(exc).__name__
             self._schedule_retry(now_s)
             self._log("warn", f"cannot open {self.config.port}: {self.last_error}; "
@@ -491,6 +498,7 @@ class DriverLink:
         return _Connected()
 
     def close_after_error(self, error: str, now_s: float) -> _State:
+        """Close a port that failed; reopen after the back-off, or when the device reappears."""
         self.last_error = error
         self._close_port()
         self._schedule_retry(now_s)
