@@ -244,8 +244,8 @@ BAD_PARAMETERS = [
     ("u_max", 0.0, "u_max must be in (0, 3.0] V", None),
     ("u_max", -1.0, "u_max must be in (0, 3.0] V", None),
     ("u_max", math.nan, "u_max must be in (0, 3.0] V", None),
-    ("u_max", "abc", "u_max must be a float (write 2.0, not 2), got abc (string)", WRONG_TYPE),
-    ("u_max", 3, "u_max must be a float (write 2.0, not 2), got 3 (integer)", WRONG_TYPE),
+    ("u_max", "abc", "u_max must be a float", WRONG_TYPE),
+    ("u_max", 3, "u_max must be a float", WRONG_TYPE),
     ("watchdog_s", 0.0, "watchdog_s must be > 0 s", None),
     ("watchdog_s", -0.5, "watchdog_s must be > 0 s", None),
     ("watchdog_s", math.inf, "watchdog_s must be > 0 s (and finite)", None),
@@ -312,7 +312,7 @@ def test_bad_parameter_refused_at_run_time_with_reason(graph, name, value, at_st
 
 
 @pytest.mark.parametrize("arg, reason", [
-    ("watchdog_s:=abc", "parameter watchdog_s must be a float (write 2.0, not 2), got abc"),
+    ("watchdog_s:=abc", "parameter watchdog_s must be a float"),
     ("stale_s:=-1.0", "parameter stale_s must be > 0 s"),
 ])
 def test_driver_process_with_bad_parameter_exits_with_one_sentence(arg, reason):
