@@ -112,7 +112,7 @@ class ModelSetError(ValueError):
     """A model file cannot be served (unreadable, or of the wrong kind for its parameter)."""
 
 
-def load_model_set(model_file: str, inverse_model_file: str = ""):
+def load_model_set(model_file: str, inverse_model_file: str = "") -> tuple:
     """Load the forward and inverse models from the two parameters' files.
 
     Returns

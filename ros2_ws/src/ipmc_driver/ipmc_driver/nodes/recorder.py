@@ -97,7 +97,7 @@ PARAMETERS = {
 }
 
 
-def get_message(msgtype: str):
+def get_message(msgtype: str) -> type:
     """The message class of ``'pkg/msg/Type'`` (rosidl_runtime_py is not on PyPI)."""
     pkg, kind, name = msgtype.split("/")
     return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
