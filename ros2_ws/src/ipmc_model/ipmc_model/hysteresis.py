@@ -15,7 +15,11 @@ The voltage u (V) passes through four stages, each an actuator mechanism:
    ``a_j = exp(-dt / tau_j)``, the time constants fixed on a geometric grid (orthonormal-basis
    identification, where the slow poles are fixed and only their weights are fitted).
 3. **Play operators** (the paper's PI hysteresis, Eq. 2) on the charge and the faster
-   relaxations, thresholds a share of the largest voltage.
+   relaxations, thresholds a share of the largest voltage; beside them **smooth memory**: the
+   charge low-passed over its own travel (path memory) and, on the charge and the fastest
+   relaxations, the direction of motion low-passed over its travel (direction memory).
+   Together these are the exact basis of a Duhem (Bouc-Wen, n = 1) element, whose loop rounds
+   off exponentially after each reversal where a play's corners are sharp.
 4. **An output map** ``y = g(z)``, ``z = w . phi`` the weighted sum of the channels and plays;
    ``g`` is piecewise linear (hinges at quantiles of z): the asymmetric, saturating bending
    of the generalised PI (Al Janaideh, Rakheja & Su).
@@ -60,6 +64,11 @@ from .errors import check_fitted
 DEFAULT_MEMORY_TAUS_S = (0.05, 0.15, 0.45, 1.35, 4.0, 12.0, 36.0, 108.0)
 #: Travels (V of charge) of the path-memory channels: smooth rate-independent memory.
 DEFAULT_PATH_MEMORY_V = (0.5, 2.0, 8.0, 32.0)
+#: Travels (V) of the direction-memory channels: smooth plays.
+DEFAULT_DIRECTION_MEMORY_V = (0.5, 2.0, 8.0, 32.0)
+#: Charging time constants tried as the joint fit's start, as multiples of the first guess:
+#: the fit's only non-convex parameters, started where a linear fit of the rest explains most.
+INITIAL_TAU_FACTORS = (1 / 30, 0.1, 1 / 3, 1.0, 3.0)
 #: Play thresholds as shares of the largest |u| of the identification record.
 DEFAULT_THRESHOLD_SHARES = (0.1, 0.25, 0.5, 0.75)
 #: Ridge weights tried by the cross-validation (on standardised features, per sample).
@@ -102,22 +111,46 @@ def travel_bank(v, travels_v, v_prev: float = 0.0, state=None) -> tuple[np.ndarr
     """Low-passes of ``v`` in its own travel, not in time: ``x_k = a_k x_{k-1} + (1 - a_k) v_k``
     with ``a_k = exp(-|v_k - v_{k-1}| / T_j)``. Rate-independent smooth path memory (a Duhem or
     Bouc-Wen element forgets its turning point over a travel, not a time); still while the
-    input holds. The (N, J) outputs and the last (J,), from ``state`` and ``v_prev`` or rest.
-
-    A first-order recursion with varying coefficients is a prefix scan of affine maps
-    (``(a2, b2) o (a1, b1) = (a2 a1, a2 b1 + b2)``): log2(N) vectorised passes."""
+    input holds. The (N, J) outputs and the last (J,), from ``state`` and ``v_prev`` or rest."""
     v = np.asarray(v, dtype=float)
     T = np.asarray(travels_v, dtype=float)
     x0 = np.zeros(T.size) if state is None else np.asarray(state, dtype=float)
     A = np.exp(-np.abs(np.diff(v, prepend=v_prev))[:, None] / T)
-    B = (1.0 - A) * v[:, None]
+    out = _affine_scan(A, (1.0 - A) * v[:, None], x0)
+    return out, (out[-1].copy() if len(out) else x0.copy())
+
+
+def direction_bank(X, travels_v, x_prev=None, state=None) -> tuple[np.ndarray, np.ndarray]:
+    """Low-passes, over each channel's own travel, of its direction of motion:
+    ``d_k = a_k d_{k-1} + (1 - a_k) sign(x_k - x_{k-1})``, ``a_k = exp(-|x_k - x_{k-1}| / T_j)``.
+    The solution of a Duhem (Bouc-Wen, n = 1) element is a travel low-pass of the input plus
+    one of its direction, so these are its basis: a smooth play that saturates exponentially
+    after each reversal. Still while the channel holds.
+
+    X : (N, C) channels; travels_v : (J,); x_prev : (C,) before sample 0 (rest: 0);
+    state : (C, J). Returns the (N, C * J) outputs and the last (C, J)."""
+    X = np.asarray(X, dtype=float)
+    T = np.asarray(travels_v, dtype=float)
+    n, c = X.shape
+    x0 = np.zeros((c, T.size)) if state is None else np.asarray(state, dtype=float)
+    prev = np.zeros(c) if x_prev is None else np.asarray(x_prev, dtype=float)
+    d = np.diff(X, axis=0, prepend=prev[None, :])
+    A = np.exp(-np.abs(d)[:, :, None] / T)
+    out = _affine_scan(A, (1.0 - A) * np.sign(d)[:, :, None], x0)
+    return out.reshape(n, -1), (out[-1].copy() if n else x0.copy())
+
+
+def _affine_scan(A: np.ndarray, B: np.ndarray, x0: np.ndarray) -> np.ndarray:
+    """``x_k = A_k x_{k-1} + B_k`` along axis 0 from ``x0``, elementwise: a first-order
+    recursion with varying coefficients is a prefix scan of affine maps
+    (``(a2, b2) o (a1, b1) = (a2 a1, a2 b1 + b2)``), log2(N) vectorised passes."""
+    A, B = A.copy(), B.copy()
     shift = 1
-    while shift < v.size:
+    while shift < A.shape[0]:
         B[shift:] = A[shift:] * B[:-shift] + B[shift:]
         A[shift:] = A[shift:] * A[:-shift]
         shift *= 2
-    out = A * x0 + B
-    return out, (out[-1].copy() if len(out) else x0.copy())
+    return A * x0 + B
 
 
 def play_bank(X, thresholds, state=None) -> tuple[np.ndarray, np.ndarray]:
@@ -191,8 +224,9 @@ def dead_zone(u: np.ndarray, width_v: float) -> np.ndarray:
 
 @dataclass(frozen=True)
 class GpiState:
-    """The model's state after a sample: charge v (V), relaxations (J,), plays (C, M), and
-    the samples run so far (the drift's clock)."""
+    """The model's state after a sample: charge v (V), relaxations (J,), plays (C, M), the
+    samples run so far (the drift's clock), path memory (T,), output relaxations (O,) and
+    direction memory (C, D)."""
 
     v: float
     relax: np.ndarray
@@ -200,6 +234,7 @@ class GpiState:
     k: int = 0
     travel: np.ndarray | None = None
     out_relax: np.ndarray | None = None
+    direction: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -247,6 +282,15 @@ class GeneralizedPI:
         IPMC, which has none).
     dt_s : float
         Sample period (s) of the data the model is fitted on and run at.
+    path_memory_v, direction_memory_v : sequence of float
+        Travels (V) of the path-memory channels (on the charge) and of the direction-memory
+        channels; () leaves them out.
+    direction_channels : int
+        Direction memory acts on the charge and the ``direction_channels - 1`` fastest
+        relaxations (the strain that drives the polymer's hysteresis). Slower channels seldom
+        reverse, so their direction memory is a long-lived state a record pins down poorly.
+    output_taus_s : sequence of float
+        Relaxations of the charge added after the map (creep); () by default.
     progress : callable, optional
         ``progress(text)`` after each stage of the fit.
 
@@ -275,7 +319,9 @@ class GeneralizedPI:
                  row_step: int = 2, max_nfev: int = 25, max_delay_s: float = 0.3,
                  dt_s: float = 0.01, delay_s: float | None = None, dead_zone_v: float = 0.0,
                  rate_channel: bool = False, drift: bool = False,
-                 path_memory_v=DEFAULT_PATH_MEMORY_V, output_taus_s=(), progress=None):
+                 path_memory_v=DEFAULT_PATH_MEMORY_V, output_taus_s=(),
+                 direction_memory_v=DEFAULT_DIRECTION_MEMORY_V, direction_channels: int = 3,
+                 progress=None):
         self.memory_taus_s = tuple(float(t) for t in memory_taus_s)
         self.play_channels = play_channels
         self.threshold_shares = tuple(float(s) for s in threshold_shares)
@@ -293,6 +339,8 @@ class GeneralizedPI:
         self.drift = bool(drift)
         self.path_memory_v = tuple(float(t) for t in path_memory_v)
         self.output_taus_s = tuple(float(t) for t in output_taus_s)
+        self.direction_memory_v = tuple(float(t) for t in direction_memory_v)
+        self.direction_channels = int(direction_channels)
         self.progress = progress
         self.weights_ = None
         self.neutral_output_stage()
@@ -321,7 +369,9 @@ class GeneralizedPI:
         ch = np.column_stack([v, relax])
         plays, _ = play_bank(ch[:, :self.thresholds_.shape[0]], self.thresholds_)
         travel, _ = travel_bank(v, self.path_memory_v)
-        return np.hstack([ch, plays, travel, self._extra_channels(v)])
+        direction, _ = direction_bank(ch[:, :self.n_direction_channels],
+                                      self.direction_memory_v)
+        return np.hstack([ch, plays, travel, direction, self._extra_channels(v)])
 
     def _extra_channels(self, v: np.ndarray, v_prev=None) -> np.ndarray:
         """The charging current, shape (N, 0 or 1), for charges ``v``; ``v_prev``: each one's
@@ -330,6 +380,13 @@ class GeneralizedPI:
             return np.zeros((v.size, 0))
         prev = np.concatenate([[0.0], v[:-1]]) if v_prev is None else v_prev
         return ((v - prev) / self.dt_s)[:, None]
+
+    @property
+    def n_direction_channels(self) -> int:
+        """Channels the direction memory acts on (the charge first), 0 without it."""
+        if not self.direction_memory_v:
+            return 0
+        return max(0, min(self.direction_channels, 1 + len(self.memory_taus_s_)))
 
     @property
     def n_extra_channels(self) -> int:
@@ -416,18 +473,41 @@ class GeneralizedPI:
         """The joint fit at ``delay_samples_`` and the smallest ridge weight, and the blocked
         CV of the ridge weight around it; sets the feature scaling and the map's knots."""
         theta0, bounds = self._initial_theta(u, span_s)
-        F0 = self._raw_features(u, theta0)
-        self.feature_mean_ = F0.mean(axis=0)
-        self.feature_scale_ = np.where(F0.std(axis=0) > 0, F0.std(axis=0), 1.0)
-        A0 = np.column_stack([(F0 - self.feature_mean_) / self.feature_scale_, np.ones(u.size)])
-        w0 = np.linalg.lstsq(A0, y, rcond=None)[0]
-        self.knots_ = place_knots(A0 @ w0, int(self.n_knots))
+        _, theta0, self.feature_mean_, self.feature_scale_, w0, self.knots_ = \
+            self._best_start(u, y, theta0, bounds)
         coef0 = np.zeros(int(self.n_knots) + 1 + (2 if self.drift else 0)
                          + len(self.output_taus_s))
         coef0[0] = 1.0
         x = self._joint_fit(u, y, np.concatenate([theta0, w0, coef0]), bounds,
                             self.alphas[0])
         return x, self._cross_validate(u, y, x)
+
+    def _best_start(self, u, y, theta0: np.ndarray, bounds):
+        """The joint fit's start: of the charging time constants ``INITIAL_TAU_FACTORS`` x the
+        first guess (the slew limit scaled inversely: the same voltage swing), the one whose
+        linear fit of the rest explains most; a (variance, theta, ...) as ``_linear_start``."""
+        if not self.rate_limit:
+            return self._linear_start(u, y, theta0)
+        lo, hi = np.asarray(bounds[0]) + 1e-9, np.asarray(bounds[1]) - 1e-9
+        starts = [self._linear_start(u, y, np.clip(theta0 + math.log(f) * np.array([1.0, -1.0]),
+                                                   lo, hi))
+                  for f in INITIAL_TAU_FACTORS]
+        return min(starts, key=lambda st: st[0])
+
+    def _linear_start(self, u, y, theta):
+        """The weights and map a linear fit gives at ``theta``, and its residual variance:
+        features, then the map's knots at quantiles of the linear z and its hinges by least
+        squares. Returns (variance, theta, feature mean, feature scale, w, knots)."""
+        F = self._raw_features(u, theta)
+        mean, std = F.mean(axis=0), F.std(axis=0)
+        scale = np.where(std > 0, std, 1.0)
+        A = np.column_stack([(F - mean) / scale, np.ones(u.size)])
+        w = np.linalg.lstsq(A, y, rcond=None)[0]
+        z = A @ w
+        knots = place_knots(z, int(self.n_knots))
+        B = np.column_stack([hinge_basis(z, knots), np.ones(u.size)])
+        resid = y - B @ np.linalg.lstsq(B, y, rcond=None)[0]
+        return float(np.var(resid)), theta, mean, scale, w, knots
 
     def _say(self, text: str) -> None:
         if self.progress is not None:
@@ -600,7 +680,9 @@ class GeneralizedPI:
                 "delay_s": self.delay_s, "dead_zone_v": self.dead_zone_v,
                 "rate_channel": self.rate_channel, "drift": self.drift,
                 "path_memory_v": list(self.path_memory_v),
-                "output_taus_s": list(self.output_taus_s)}
+                "output_taus_s": list(self.output_taus_s),
+                "direction_memory_v": list(self.direction_memory_v),
+                "direction_channels": self.direction_channels}
 
 
 class GpiStepper:
@@ -615,6 +697,7 @@ class GpiStepper:
         self._m = model
         self._a = np.exp(-model.dt_s / np.asarray(model.memory_taus_s_, dtype=float))
         self._travels = np.asarray(model.path_memory_v, dtype=float)
+        self._directions = np.asarray(model.direction_memory_v, dtype=float)
         self._a_out = np.exp(-model.dt_s / np.asarray(model.output_taus_s, dtype=float))
         self.reset(u_history)
 
@@ -625,7 +708,8 @@ class GpiStepper:
         if u_history is None or len(u_history) == 0:
             self._queue = deque([0.0] * d)
             self.state = GpiState(0.0, np.zeros(self._a.size), np.zeros(m.thresholds_.shape),
-                                  0, np.zeros(len(m.path_memory_v)), np.zeros(self._a_out.size))
+                                  0, np.zeros(self._travels.size), np.zeros(self._a_out.size),
+                                  np.zeros((m.n_direction_channels, self._directions.size)))
             return
         u = as_signal("u_history", u_history)
         past = dead_zone(u, m.dead_zone_v).tolist()[-d:] if d else []
@@ -636,10 +720,12 @@ class GpiStepper:
         _, plays = play_bank(ch[:, :m.thresholds_.shape[0]], m.thresholds_)
         _, travel = travel_bank(v, m.path_memory_v)
         _, out_relax = lowpass_bank(v, m.output_taus_s, m.dt_s)
-        self.state = GpiState(float(v[-1]), zf, plays, int(u.size), travel, out_relax)
+        _, direction = direction_bank(ch[:, :m.n_direction_channels], m.direction_memory_v)
+        self.state = GpiState(float(v[-1]), zf, plays, int(u.size), travel, out_relax,
+                              direction)
 
-    def _channels(self, x: np.ndarray):
-        """Charge v (G,), relaxations (G, J), plays (G, C, M) after charge inputs ``x`` (G,)."""
+    def _channels(self, x: np.ndarray) -> GpiState:
+        """The states (each with a leading axis G) after charge inputs ``x`` (G,)."""
         m, s = self._m, self.state
         if m.rate_limit:
             v = s.v + m.dt_s * m.slew_v_per_s_ * np.tanh(
@@ -647,31 +733,37 @@ class GpiStepper:
         else:
             v = x
         relax = self._a * s.relax + (1.0 - self._a) * v[:, None]
-        ch = np.column_stack([v, relax])[:, :m.thresholds_.shape[0], None]
-        plays = np.maximum(ch - m.thresholds_, np.minimum(ch + m.thresholds_, s.plays))
+        ch = np.column_stack([v, relax])
+        c, nd = m.thresholds_.shape[0], m.n_direction_channels
+        plays = np.maximum(ch[:, :c, None] - m.thresholds_,
+                           np.minimum(ch[:, :c, None] + m.thresholds_, s.plays))
         a = np.exp(-np.abs(v - s.v)[:, None] / self._travels)
         travel = a * s.travel + (1.0 - a) * v[:, None]
         out_relax = self._a_out * s.out_relax + (1.0 - self._a_out) * v[:, None]
-        return v, relax, plays, travel, out_relax
+        step = ch[:, :nd] - np.concatenate([[s.v], s.relax])[:nd]
+        a = np.exp(-np.abs(step)[:, :, None] / self._directions)
+        direction = a * s.direction + (1.0 - a) * np.sign(step)[:, :, None]
+        return GpiState(v, relax, plays, s.k + 1, travel, out_relax, direction)
 
-    def _output(self, v, relax, plays, travel, out_relax) -> np.ndarray:
-        m = self._m
-        extra = m._extra_channels(v, np.full(v.size, self.state.v))
-        phi = np.column_stack([v, relax, plays.reshape(v.size, -1), travel, extra])
+    def _output(self, n: GpiState) -> np.ndarray:
+        m, g = self._m, np.size(n.v)
+        extra = m._extra_channels(n.v, np.full(g, self.state.v))
+        phi = np.column_stack([n.v, n.relax, n.plays.reshape(g, -1), n.travel,
+                               n.direction.reshape(g, -1), extra])
         z = ((phi - m.feature_mean_) / m.feature_scale_) @ m.weights_[:-1] + m.weights_[-1]
         return m.output_stage(hinge_basis(z, m.knots_) @ m.map_coef_, self.state.k * m.dt_s,
-                              out_relax @ m.output_coef_)
+                              n.out_relax @ m.output_coef_)
 
     def outputs(self, x_candidates) -> np.ndarray:
         """Model outputs (mm) for candidate charge inputs (V) of this sample; state unchanged."""
-        return self._output(*self._channels(np.atleast_1d(np.asarray(x_candidates, float))))
+        return self._output(self._channels(np.atleast_1d(np.asarray(x_candidates, float))))
 
     def advance(self, x_v: float) -> float:
         """One sample with ``x_v`` (V) reaching the charging stage; returns the output (mm)."""
-        v, relax, plays, travel, out_relax = self._channels(np.array([float(x_v)]))
-        y = float(self._output(v, relax, plays, travel, out_relax)[0])
-        self.state = GpiState(float(v[0]), relax[0], plays[0], self.state.k + 1, travel[0],
-                              out_relax[0])
+        n = self._channels(np.array([float(x_v)]))
+        y = float(self._output(n)[0])
+        self.state = GpiState(float(n.v[0]), n.relax[0], n.plays[0], n.k, n.travel[0],
+                              n.out_relax[0], n.direction[0])
         return y
 
     def step(self, u_v: float) -> float:

@@ -221,8 +221,8 @@ def _gpi_doc(model) -> tuple[str, dict, dict]:
 def _build_gpi(body: dict, arrays: dict):
     from .hysteresis import CvResult
 
-    # a file written before the path-memory channels has none
-    m = GeneralizedPI(**{"path_memory_v": (), **body["params"]})
+    # a file written before the path-memory or direction-memory channels has none
+    m = GeneralizedPI(**{"path_memory_v": (), "direction_memory_v": (), **body["params"]})
     m.memory_taus_s_ = tuple(float(t) for t in body["memory_taus_s_"])
     for k in GPI_SCALARS:
         setattr(m, k, float(body[k]))
@@ -246,6 +246,7 @@ def _build_gpi(body: dict, arrays: dict):
     if (m.weights_.size != p + 1 or m.feature_scale_.size != p
             or m.map_coef_.size != m.knots_.size + 1
             or p != (1 + len(m.memory_taus_s_) + m.thresholds_.size + len(m.path_memory_v)
+                     + m.n_direction_channels * len(m.direction_memory_v)
                      + m.n_extra_channels)
             or m.thresholds_.shape[0] > 1 + len(m.memory_taus_s_)):
         raise ValueError("the GPI arrays do not match its channels")

@@ -226,6 +226,49 @@ def test_travel_bank_is_the_recursion_and_still_while_the_input_holds():
     assert np.allclose(out[301:], out[301])  # a hold: no travel, no change
 
 
+def test_direction_bank_is_the_recursion_per_channel_and_still_while_they_hold():
+    from ipmc_model.hysteresis import direction_bank
+
+    rng = np.random.default_rng(1)
+    X = np.vstack([np.cumsum(rng.normal(0, 0.1, (300, 2)), axis=0), np.ones((100, 2))])
+    T = np.array([0.5, 4.0])
+    out, last = direction_bank(X, T)
+    d, prev = np.zeros((2, 2)), np.zeros(2)
+    for k, xk in enumerate(X):
+        a = np.exp(-np.abs(xk - prev)[:, None] / T)
+        d = a * d + (1 - a) * np.sign(xk - prev)[:, None]
+        prev = xk
+        assert np.allclose(out[k], d.ravel(), atol=1e-12)
+    assert np.allclose(last, d)
+    assert np.allclose(out[301:], out[301])  # a hold: no travel, no change
+    # from a state: the second half goes on from the first half's end
+    half, state = direction_bank(X[:150], T)
+    rest, _ = direction_bank(X[150:], T, x_prev=X[149], state=state)
+    assert np.allclose(np.vstack([half, rest]), out)
+
+
+def test_a_duhem_element_is_in_the_span_of_the_travel_and_direction_memories():
+    """A Duhem element, dh = |du| (c u - h) / T + b du, is a travel low-pass of c u plus one
+    of the direction b T sign(du): exactly the channels the GPI carries (at that travel)."""
+    from ipmc_model.hysteresis import direction_bank, lowpass_bank, travel_bank
+
+    _, u = mixed(60.0, 100.0, 3.0, band_hz=(0.02, 0.8), seed=2)
+    u = lowpass_bank(u, [0.1], 0.01)[0][:, 0]  # a charge: small steps per sample
+    travel_v, c, b = 1.5, 0.8, 0.35
+    h, prev, out = 0.0, 0.0, np.empty(u.size)
+    for k, uk in enumerate(u):  # integrated along the path in 0.005 V steps
+        for x in np.linspace(prev, uk, 1 + max(1, int(abs(uk - prev) / 0.005)))[1:]:
+            h += abs(x - prev) * (c * x - h) / travel_v + b * (x - prev)
+            prev = x
+        out[k] = h
+    F = np.column_stack([travel_bank(u, [travel_v])[0],
+                         direction_bank(u[:, None], [travel_v])[0]])
+    w = np.linalg.lstsq(F, out, rcond=None)[0]
+    # a sample's ramp of the input against the memories' one step: second order in its travel
+    assert np.sqrt(np.mean((F @ w - out) ** 2)) < 0.02 * np.std(out)
+    assert w == pytest.approx([c, b * travel_v], rel=0.1)
+
+
 def test_optional_stages_step_as_they_simulate_and_survive_the_file(tmp_path):
     """Dead zone, fixed delay, drift, creep relaxations after the map and the output stage:
     the stepper equals the free run (also going on from a history), the inverse is exact to

@@ -129,6 +129,8 @@ def feature_names(m: GeneralizedPI) -> list[str]:
     return (["v"] + [f"relax {t:g} s" for t in m.memory_taus_s_]
             + [f"play {i}" for i in range(m.thresholds_.size)]
             + [f"travel {t:g} V" for t in m.path_memory_v]
+            + [f"direction {c} {t:g} V" for c in range(m.n_direction_channels)
+               for t in m.direction_memory_v]
             + (["dv/dt"] if m.rate_channel else []))
 
 

@@ -22,9 +22,14 @@ from .results import CandidateResult, Diagnosis, Evidence, Outcome, Round
 def core_model(rec: DiagnosisRecord, progress=None) -> GeneralizedPI:
     """The diagnosis's own model: a GPI with the actuator's fast time scales only (charging,
     back-relaxation: below ``creep_min_tau_s``), no delay and no optional stage, fitted on the
-    fit rows; the candidates are the stages it leaves out."""
+    fit rows; the candidates are the stages it leaves out.
+
+    It carries no direction memory: on a fit part of a few thousand samples the direction
+    channels' weights are poorly determined, and refits with a candidate's block (a delay
+    above all) overfit them (held-out error several times the blocked CV's), which would bias
+    the loss differentials the decision rests on."""
     taus = tuple(t for t in DEFAULT_MEMORY_TAUS_S if t < rec.config.creep_min_tau_s)
-    return GeneralizedPI(memory_taus_s=taus, delay_s=0.0, dt_s=rec.dt_s,
+    return GeneralizedPI(memory_taus_s=taus, delay_s=0.0, dt_s=rec.dt_s, direction_memory_v=(),
                          progress=progress).fit(rec.u_v[rec.fit], rec.y_mm[rec.fit])
 
 
