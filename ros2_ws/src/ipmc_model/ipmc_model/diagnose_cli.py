@@ -33,6 +33,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0,
                    help="accepted for scripts written for earlier versions; the diagnosis is "
                         "deterministic")
+    from ipmc_driver.dataio import add_allow_implausible
+
+    add_allow_implausible(p)
     return p
 
 
@@ -44,13 +47,15 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of ``ipmc diagnose``; returns the exit code."""
     args = _parser().parse_args(argv)
     try:
-        from ipmc_driver.dataio import load_record
+        from ipmc_driver.dataio import load_record, print_notes
 
         from .effects import load_any_model
 
         check_report_dir(args.report)
         model = load_any_model(args.model) if args.model else None
-        rec = load_record(args.data)
+        notes: list[str] = []
+        rec = load_record(args.data, allow_implausible=args.allow_implausible, notes=notes)
+        print_notes("ipmc diagnose", notes)
         _progress(f"{args.data}: {len(rec)} samples at {rec.rate_hz:.4g} Hz")
         d = diagnose(rec.t_s, rec.u_v, rec.y_mm, model=model, candidates=args.effects,
                      progress=_progress)

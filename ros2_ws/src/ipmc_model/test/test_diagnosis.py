@@ -173,3 +173,14 @@ def test_cli_refuses_a_given_model_that_is_not_gpi(tmp_path, capsys):
     pi = save_model(PrandtlIshlinskii(n_operators=4).fit(rec.u_v, rec.y_mm), tmp_path / "pi")
     assert main(["--data", str(data), "--model", str(pi), "--report", str(tmp_path / "r")]) == 1
     assert "GPI model" in capsys.readouterr().err
+
+
+def test_cli_refuses_millivolts_and_warns_of_metres_before_any_work(tmp_path, capsys):
+    from dataclasses import replace
+
+    rec = plant_record({}, 60.0, 7)
+    mv = save_csv(replace(rec, u_v=rec.u_v * 1000.0), tmp_path / "mv.csv")
+    assert main(["--data", str(mv), "--report", str(tmp_path / "r")]) == 1
+    err = capsys.readouterr().err
+    assert "H-bridge" in err and "--allow-implausible" in err
+    assert not (tmp_path / "r" / "summary.json").exists()
