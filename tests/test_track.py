@@ -76,7 +76,7 @@ def test_track_in_process_writes_the_json_keys(inverse_file, tmp_path, capsys):
 
 
 def test_track_refuses_a_model_mode_without_a_model(capsys):
-    assert track_main(["--reference", "sine", "--mode", "hybrid", "--seconds", "1"]) == 2
+    assert track_main(["--reference", "sine", "--mode", "hybrid", "--seconds", "1"]) == 1
     assert "needs --model" in capsys.readouterr().err
 
 
@@ -90,7 +90,7 @@ def test_track_refuses_a_forward_model(tmp_path, capsys):
     path = save_model(NarxModel(LSSVMRegressor(C=10.0, sigma=2.0)).fit(run.u_v, run.y_mm),
                       tmp_path / "forward.json")
     assert track_main(["--model", str(path), "--reference", "sine", "--mode", "inverse",
-                       "--seconds", "1"]) == 2
+                       "--seconds", "1"]) == 1
     assert "not an inverse model" in capsys.readouterr().err
 
 
@@ -190,7 +190,7 @@ def test_track_with_the_creep_undone_holds_closer(creep_feedforwards, tmp_path, 
                        "--mode", "inverse"]) == 0
     assert "beyond" not in capsys.readouterr().err
     assert track_main(["--model", str(creep_feedforwards["after"]), "--reference",
-                       "constant", "--mode", "hybrid", "--seconds", "1"]) == 2
+                       "constant", "--mode", "hybrid", "--seconds", "1"]) == 1
     assert "--effects-from" in capsys.readouterr().err
 
 
@@ -305,3 +305,10 @@ def test_track_graph_stopped_by_sigterm_stops_its_nodes(inverse_file, ros_env, t
                 import os
 
                 os.kill(p, signal.SIGKILL)
+
+
+def test_track_refuses_an_output_path_that_is_a_folder_before_any_run(tmp_path, capsys):
+    assert track_main(["--reference", "sine", "--mode", "pid", "--seconds", "1",
+                       "--json", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert "--json" in err and "folder" in err and "RMSE" not in err

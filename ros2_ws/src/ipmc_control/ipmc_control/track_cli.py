@@ -338,6 +338,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     duration = args.seconds or DEFAULT_DURATION_S[args.reference]
     try:
+        from ipmc_driver.validation import check_output_file
+
+        if args.json:
+            check_output_file(args.json, option="--json", suffixes=(".json",))
+        if args.plot:
+            check_output_file(args.plot, option="--plot", suffixes=(".png", ".pdf", ".svg"))
         model = load_feedforward(args.model, args.mode)
         reach = reach_warning(model, args.reference, duration)
         if reach:
@@ -353,8 +359,8 @@ def main(argv: list[str] | None = None) -> int:
                 plot_tracking(result, args.plot, f"{args.reference}, {args.mode}: RMSE "
                                                  f"{summary['rmse_mm']:.4f} mm")
     except (ValueError, RuntimeError, TimeoutError, OSError) as exc:
-        print(f"ipmc track: {exc}", file=sys.stderr)
-        return 2
+        print(f"ipmc track: error: {exc}", file=sys.stderr)
+        return 1
     where = "graph" if args.graph else "in process"
     print(f"{args.reference} / {args.mode} ({where}"
           f"{', plant effects ' + ','.join(args.plant_effect) if args.plant_effect else ''}): "
@@ -362,8 +368,10 @@ def main(argv: list[str] | None = None) -> int:
           f"max |u| {summary['u_max_v']:.2f} V over {summary['duration_s']:.1f} s "
           f"({summary['samples']} samples)")
     if args.json:
+        from ipmc_driver.dataio import write_atomic
+
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+        write_atomic({args.json: json.dumps(summary, indent=2) + "\n"})
     return 0
 
 
