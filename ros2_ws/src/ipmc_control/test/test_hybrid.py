@@ -140,3 +140,20 @@ def test_command_always_finite_and_within_3v(steps):
         u = ctl.compute_command(r, y, h, feedforward_v=ff)
         assert math.isfinite(u)
         assert abs(u) <= 3.0
+
+
+def test_gpi_inverse_tracks_a_sine_in_the_hybrid_loop():
+    """The GPI inverse (ipmc identify's default family) as the hybrid's feedforward."""
+    import math
+
+    from ipmc_control.experiment import run_tracking
+    from ipmc_control.references import SineReference
+    from ipmc_driver.plant import IpmcPlant
+    from ipmc_driver.signals import mixed
+    from ipmc_model.hysteresis import GeneralizedPI
+
+    _, u = mixed(180.0, 100.0, 3.0, (0.02, 0.8), seed=1)
+    model = GeneralizedPI().fit(u, IpmcPlant(seed=1).run(u).y_mm)
+    res = run_tracking(SineReference(amplitude_mm=2.5, frequency_hz=1 / (2 * math.pi)), 25.0,
+                       "hybrid", inverse=model.inverse())
+    assert res.summary()["rmse_mm"] < 0.02

@@ -4,7 +4,6 @@ and ``ipmc identify``'s default comparison of families."""
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest
@@ -163,15 +162,6 @@ def test_identify_refuses_bad_input_in_one_sentence(tmp_path, capsys):
     assert "lssvm-narx" in capsys.readouterr().err and not out.exists()
     assert identify_main(["--data", data, "--C", "10", "--out", str(out)]) == 1
     assert "--C belong to one model family" in capsys.readouterr().err and not out.exists()
-
-
-def test_gpi_inverse_tracks_a_sine_in_the_hybrid_loop(rig_model):
-    from ipmc_control.experiment import run_tracking
-    from ipmc_control.references import SineReference
-
-    res = run_tracking(SineReference(amplitude_mm=2.5, frequency_hz=1 / (2 * math.pi)), 25.0,
-                       "hybrid", inverse=rig_model.inverse())
-    assert res.summary()["rmse_mm"] < 0.02
 
 
 def test_evaluate_says_when_a_record_is_unlike_the_identification_record(tmp_path, capsys):
