@@ -69,6 +69,7 @@ from pathlib import Path
 import numpy as np
 from scipy.signal import lfilter
 
+from ipmc_driver.dataio import write_atomic
 from ipmc_driver.validation import as_signal, same_length
 
 from .errors import ModelFileError
@@ -80,7 +81,13 @@ from .narx import (
     members_of,
     samples_to_settle,
 )
-from .persistence import load_model, read_model_document, save_model
+from .persistence import (
+    DOCUMENT_CHECKSUM,
+    document_sha256,
+    load_model,
+    read_model_document,
+    save_model,
+)
 
 EFFECT_NAMES = ("creep", "drift", "delay", "rate_dependence", "asymmetry", "dead_zone",
                 "saturation")
@@ -126,7 +133,8 @@ PARAM_MEANING = {
 }
 
 AUGMENTED_FORMAT = "ipmc-ros-augmented-model"
-AUGMENTED_FORMAT_VERSION = 1
+#: 2 adds the document checksum (as model files of format 5); files of version 1 still load.
+AUGMENTED_FORMAT_VERSION = 2
 #: ``kind`` of an augmented model file that also holds a feedforward (:class:`AugmentedInverse`).
 AUGMENTED_INVERSE_KIND = "augmented-lssvm-narx-inverse"
 
@@ -822,7 +830,8 @@ def save_augmented(model: AugmentedModel | AugmentedInverse, path, *,
                                                 "its baseline space"})
         doc["inverse_file"] = inv_path.name
         doc["feedforward_left_out"] = dict(ff.left_out)
-    path.write_text(json.dumps(doc, indent=2) + "\n")
+    doc[DOCUMENT_CHECKSUM] = document_sha256(json.loads(json.dumps(doc)))
+    write_atomic({path: json.dumps(doc, indent=2) + "\n"})
     return path
 
 
@@ -842,6 +851,10 @@ def _augmented_from(path: Path, doc: dict) -> AugmentedModel:
             doc["format_version"] > AUGMENTED_FORMAT_VERSION:
         raise ModelFileError(f"{path}: unsupported augmented format version "
                              f"{doc.get('format_version')!r}.")
+    if (doc["format_version"] >= 2 or DOCUMENT_CHECKSUM in doc) \
+            and doc.get(DOCUMENT_CHECKSUM) != document_sha256(doc):
+        raise ModelFileError(f"{path}: the model file was changed or corrupted after it was "
+                             "written (the checksum of its JSON document differs).")
     try:
         base = load_model(path.parent / doc["baseline_file"])
         effects = [Effect(e["name"], **e["params"]) for e in doc["effects"]]

@@ -152,13 +152,13 @@ def save_model(model, path, *, metadata: dict | None = None) -> Path:
     # the checksum of the document as a reader parses it back (tuples become lists, NumPy
     # scalars numbers), so that reading and checking agree on every value
     parsed = json.loads(json.dumps(doc, default=_json_default))
-    doc[DOCUMENT_CHECKSUM] = _document_sha256(parsed)
+    doc[DOCUMENT_CHECKSUM] = document_sha256(parsed)
     text = json.dumps(doc, indent=2, default=_json_default) + "\n"
     write_atomic({arrays_path: blob, path: text})
     return path
 
 
-def _document_sha256(doc: dict) -> str:
+def document_sha256(doc: dict) -> str:
     """SHA-256 of a model document without its own checksum field, serialised canonically
     (sorted keys, no spaces, ASCII): what :data:`DOCUMENT_CHECKSUM` holds."""
     rest = {k: v for k, v in doc.items() if k != DOCUMENT_CHECKSUM}
@@ -295,7 +295,7 @@ def read_model_document(path) -> dict:
     # a file of an older version has no document checksum; one that has it is checked whatever
     # its version says, so that lowering the version does not skip the check
     if version >= DOCUMENT_CHECKSUM_SINCE or DOCUMENT_CHECKSUM in doc:
-        if doc.get(DOCUMENT_CHECKSUM) != _document_sha256(doc):
+        if doc.get(DOCUMENT_CHECKSUM) != document_sha256(doc):
             _fail(path, "the model file was changed or corrupted after it was written (the "
                         "checksum of its JSON document differs)")
     return doc

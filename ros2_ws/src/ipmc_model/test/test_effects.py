@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -247,6 +248,13 @@ def test_save_load_round_trip(tmp_path, base):
     (tmp_path / "bad.json").write_text("{}")
     with pytest.raises(ModelFileError, match="bad.json"):
         load_augmented(tmp_path / "bad.json")
+    # an edited effect parameter is refused, as in any model file
+    doc = json.loads(p.read_text())
+    doc["effects"][0]["params"]["gain_mm_per_v"] = -2.5
+    edited = tmp_path / "edited.json"
+    edited.write_text(json.dumps(doc))
+    with pytest.raises(ModelFileError, match="edited.json.*changed or corrupted"):
+        load_augmented(edited)
 
 
 @pytest.fixture(scope="module")
