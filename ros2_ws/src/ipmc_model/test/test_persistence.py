@@ -9,7 +9,7 @@ from ipmc_model.narx import InverseNarxModel, NarxCommittee, NarxModel
 from ipmc_model.persistence import (
     DOCUMENT_CHECKSUM,
     FORMAT_VERSION,
-    _document_sha256,
+    document_sha256,
     check_model_output,
     load_model,
     save_model,
@@ -20,7 +20,7 @@ from ipmc_model.play import PrandtlIshlinskii
 def _rewrite(path, doc):
     """Write ``doc`` as the model file ``path`` with a matching document checksum, as a writer
     would: the loader's checks of the content itself are what is tested then."""
-    doc[DOCUMENT_CHECKSUM] = _document_sha256(doc)
+    doc[DOCUMENT_CHECKSUM] = document_sha256(doc)
     path.write_text(json.dumps(doc))
 
 
