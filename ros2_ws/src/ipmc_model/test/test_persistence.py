@@ -9,8 +9,8 @@ from ipmc_model.narx import InverseNarxModel, NarxCommittee, NarxModel
 from ipmc_model.persistence import (
     DOCUMENT_CHECKSUM,
     FORMAT_VERSION,
-    document_sha256,
     check_model_output,
+    document_sha256,
     load_model,
     save_model,
 )
