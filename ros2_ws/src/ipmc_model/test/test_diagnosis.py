@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -155,6 +156,10 @@ def test_cli_writes_the_report_and_a_model_that_runs(tmp_path, capsys):
     report = (out / "report.md").read_text()
     assert "Diebold-Mariano" in report and "| delay | accepted |" in report
     assert "effects found: delay" in capsys.readouterr().out
+    # creep was not testable (no holds): the report proposes the record that decides it
+    x = json.loads(Path(s["next_experiment"]).read_text())
+    assert "creep" in x["decides"] and x["fit_share"] == 0.7
+    assert max(abs(v) for v in x["u_v"]) <= 3.0 and "## The next experiment" in report
 
 
 def test_cli_refuses_a_report_path_that_is_a_file_before_any_work(tmp_path, capsys):
@@ -184,3 +189,35 @@ def test_cli_refuses_millivolts_and_warns_of_metres_before_any_work(tmp_path, ca
     err = capsys.readouterr().err
     assert "H-bridge" in err and "--allow-implausible" in err
     assert not (tmp_path / "r" / "summary.json").exists()
+
+
+def test_the_next_experiment_makes_creep_delay_and_dead_zone_testable():
+    """Probes assembled after a record that could test none of them: the new record's
+    excitation lets each be tested, and the deciding part is the held-out part."""
+    from ipmc_model.diagnosis.candidates import CANDIDATES as C
+    from ipmc_model.diagnosis.config import DiagnosisConfig
+    from ipmc_model.diagnosis.experiment import assemble
+    from ipmc_model.diagnosis.record import DiagnosisRecord
+    from ipmc_model.diagnosis.results import CandidateResult
+    from ipmc_model.diagnosis.search import core_model
+
+    # slow and smooth (no holds, no steps, little power above the charging corner), far from
+    # 0 V
+    _, u = random_sine(80.0, RATE, 1.0, (0.02, 0.2), 4, seed=3)
+    u = 2.0 + 0.8 * u / np.max(np.abs(u))
+    run = IpmcPlant(seed=3, dt_s=1 / RATE).run(u)
+    cfg = DiagnosisConfig()
+    rec = DiagnosisRecord(run.t_s, u, run.y_mm, cfg)
+    model = core_model(rec)
+    names = ("creep", "delay", "dead_zone")
+    assert all(C[n].not_testable(rec, model, False) for n in names)
+    probes = [C[n].probe(rec, model, CandidateResult(n, Outcome.NOT_TESTABLE, "", 1))
+              for n in names]
+    x = assemble(probes, rec)
+    assert np.max(np.abs(x.u_v)) <= 3.0 and x.decides == sorted(names)
+    new = IpmcPlant(seed=4, dt_s=1 / RATE).run(x.u_v)
+    rec2 = DiagnosisRecord(new.t_s, x.u_v, new.y_mm, cfg)
+    model2 = core_model(rec2)
+    assert [C[n].not_testable(rec2, model2, False) for n in names] == [None] * 3
+    held = [p for p in x.parts if p.start_s >= rec2.cut * rec2.dt_s - 1e-9]
+    assert {p.effect for p in held} == set(names)

@@ -32,6 +32,7 @@ from ..hysteresis import (
     hinge_basis,
     hinge_slope,
 )
+from .experiment import Probe, crossings, holds, probe_level_v
 from .record import DiagnosisRecord
 
 
@@ -56,6 +57,13 @@ class Candidate:
                      ) -> str | None:
         """Why the record cannot decide this effect and what to record instead; None if it
         can."""
+        return None
+
+    def probe(self, rec: DiagnosisRecord, model: GeneralizedPI, result
+              ) -> Probe | None:
+        """The input that would make this effect testable (``result``: this round's result,
+        its evidence when the candidate was fitted as a rival); None if no record can (a
+        given model is what it needs)."""
         return None
 
     def refit(self, model: GeneralizedPI, rec: DiagnosisRecord) -> Fitted | str:
@@ -210,6 +218,16 @@ def creep_taus(model: GeneralizedPI, rec: DiagnosisRecord) -> tuple[float, ...]:
                  and t not in model.memory_taus_s_ and t not in model.output_taus_s)
 
 
+#: Holds proposed for creep last this many of its time constants (95 % settled).
+HOLD_TAUS = 3.0
+#: Steps proposed for a delay: this many, each held this long (s; > 5 charging time
+#: constants of an IPMC, ~0.3 s, so that each onset starts from a settled charge).
+PROBE_STEPS, PROBE_STEP_S = 8, 1.5
+#: Slow crossings of 0 V proposed for a dead zone: period (s, far slower than the charging)
+#: and cycles.
+CROSSING_PERIOD_S, CROSSING_CYCLES = 20.0, 2
+
+
 @register
 class Creep(Candidate):
     name = "creep"
@@ -228,6 +246,17 @@ class Creep(Candidate):
                     f"relaxation cannot be told from the memory of the path; record holds of "
                     f"at least {c.hold_min_s:g} s at several levels in both parts")
         return None
+
+    def probe(self, rec, model, result):
+        ev = result.evidence
+        taus = ev.params.get("taus_s", []) if ev is not None else []
+        tau = max([float(t) for t in taus] + [rec.config.creep_min_tau_s])
+        hold_s = max(HOLD_TAUS * tau, rec.config.hold_min_s)
+        a = probe_level_v(rec)
+        return Probe(self.name, holds((a, -a), hold_s, 1.0 / rec.dt_s),
+                     f"holds of {hold_s:.0f} s ({HOLD_TAUS:g} x the creep's time constant "
+                     f"{tau:g} s) at +-{a:.2f} V: a relaxation settles while the input holds "
+                     f"still, the path memory does not move")
 
     def refit(self, model, rec):
         taus = creep_taus(model, rec)
@@ -309,6 +338,13 @@ class Delay(Candidate):
     def not_testable(self, rec, model, given):
         return fast_input_reason(rec, model, "delay")
 
+    def probe(self, rec, model, result):
+        a = probe_level_v(rec)
+        levels = np.array([1.0, 0.0, -1.0, 0.5, -0.5, 0.0, 1.0, -1.0])[:PROBE_STEPS] * a
+        return Probe(self.name, holds(levels, PROBE_STEP_S, 1.0 / rec.dt_s),
+                     f"{PROBE_STEPS} steps held {PROBE_STEP_S:g} s each: a delay shifts each "
+                     f"onset, the charging lag only rounds it")
+
     def refit(self, model, rec):
         c = rec.config
         u = dead_zone(rec.u_v[rec.fit], model.dead_zone_v)
@@ -351,6 +387,13 @@ class DeadZone(Candidate):
         return (f"{100 * share:.1f} % of the fit part within +-{c.dead_zone_max_v:g} V: a "
                 f"dead zone shows in slow crossings of 0 V; record small, slow ones "
                 f"(at least {100 * c.dead_zone_min_share:.0f} % of the time)")
+
+    def probe(self, rec, model, result):
+        a = min(rec.config.dead_zone_max_v, probe_level_v(rec))
+        return Probe(self.name, crossings(a, CROSSING_PERIOD_S, CROSSING_CYCLES, 1.0 / rec.dt_s),
+                     f"{CROSSING_CYCLES} slow triangles of +-{a:.2f} V ({CROSSING_PERIOD_S:g} s "
+                     f"period): the charge follows them, and a dead zone flattens the bending "
+                     f"at each crossing of 0 V")
 
     def refit(self, model, rec):
         hi = rec.config.dead_zone_max_v

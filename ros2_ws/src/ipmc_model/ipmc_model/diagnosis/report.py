@@ -100,7 +100,12 @@ def write_report(d: Diagnosis, out_dir, data_label: str = "data") -> dict:
     p_after = save_model(d.model_after, out / "model_after.json",
                          metadata={**meta, "held_out_free_run_rmse_mm": d.rmse_after_mm,
                                    "effects_found": d.effects_found})
-    summary = summary_of(d, {"model_before": str(p_before), "model_after": str(p_after)})
+    paths = {"model_before": str(p_before), "model_after": str(p_after)}
+    if d.next_experiment is not None:
+        experiment = out / "next_experiment.json"
+        _write_atomic(experiment, json.dumps(d.next_experiment.as_dict()) + "\n")
+        paths["next_experiment"] = str(experiment)
+    summary = summary_of(d, paths)
     _write_atomic(out / "summary.json", json.dumps(summary, indent=2, allow_nan=False) + "\n")
     fig = _figure(d, out)
     _write_atomic(out / "report.md", markdown(d, summary, data_label, fig))
@@ -147,6 +152,8 @@ def markdown(d: Diagnosis, s: dict, label: str, figure: str | None) -> str:
         lines += ["## Not testable on this record", ""]
         lines += [f"- **{r.name}** ({CANDIDATES[r.name].meaning}): {r.reason}."
                   for r in untestable] + [""]
+    if d.next_experiment is not None:
+        lines += _experiment_lines(d.next_experiment)
     if figure:
         lines += [f"![held-out residual before and after]({figure})", ""]
     lines += ["## Thresholds", "", "| name | value |", "|---|---|"]
@@ -155,6 +162,17 @@ def markdown(d: Diagnosis, s: dict, label: str, figure: str | None) -> str:
               f"`{Path(s['model_after']).name}` (after; GPI model files, served by "
               "model_server and inverted by ipmc identify --inverse --effects-from).", ""]
     return "\n".join(lines)
+
+
+def _experiment_lines(x) -> list[str]:
+    lines = ["## The next experiment", "",
+             f"`next_experiment.json` ({x.duration_s:.0f} s at {x.rate_hz:.4g} Hz, |u| <= "
+             f"{float(np.max(np.abs(x.u_v))):.2f} V) decides {', '.join(x.decides)}; its last "
+             f"{100 * (1 - x.fit_share):.0f} % is the held-out part. Record it and diagnose "
+             "that record:", "", "| part | from (s) | length (s) | why |", "|---|---|---|---|"]
+    lines += [f"| {p.name} | {p.start_s:.1f} | {p.duration_s:.1f} | {p.reason} |"
+              for p in x.parts]
+    return lines + [""]
 
 
 def _fmt(v) -> str:

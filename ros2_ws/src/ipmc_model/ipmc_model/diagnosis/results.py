@@ -4,10 +4,14 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 from enum import StrEnum
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..hysteresis import GeneralizedPI
+
+if TYPE_CHECKING:
+    from .experiment import Experiment
 from .config import DiagnosisConfig
 
 
@@ -96,6 +100,8 @@ class Diagnosis:
     noise_floor_mm: float = float("nan")
     seconds: float = 0.0
     excitation: dict = field(default_factory=dict)
+    #: The experiment that would decide the not-testable candidates (None: nothing to run).
+    next_experiment: Experiment | None = None
 
     @property
     def effects_found(self) -> list[str]:

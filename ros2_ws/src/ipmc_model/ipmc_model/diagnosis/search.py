@@ -15,6 +15,7 @@ from ..hysteresis import DEFAULT_MEMORY_TAUS_S, GeneralizedPI
 from .candidates import CANDIDATES, Fitted
 from .config import DiagnosisConfig
 from .decision import holm, loss_differential_test, passes
+from .experiment import design_experiment
 from .record import DiagnosisRecord
 from .results import CandidateResult, Diagnosis, Evidence, Outcome, Round
 
@@ -162,5 +163,6 @@ def diagnose(t_s, u_v, y_mm, *, model=None, config: DiagnosisConfig | None = Non
         current = fitted.model
         names.remove(rnd.accepted)
     d.model_after = current
+    d.next_experiment = design_experiment(d, rec)
     d.seconds = time.perf_counter() - t0
     return d

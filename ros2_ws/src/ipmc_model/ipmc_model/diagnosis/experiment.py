@@ -1,0 +1,139 @@
+"""The next experiment: an excitation designed to decide what a record could not.
+
+When the record cannot test a candidate (creep without input holds, a delay without steps, a
+dead zone without slow crossings of 0 V), the candidate's class proposes a probe: the short
+input that shows its effect. The experiment plays the probes after an identification input
+that covers the record's range, and then plays them again as the held-out part, so that the
+diagnosis of the new record judges each effect on exactly the excitation that shows it, and
+the fit part has seen that excitation too (the judged rows stay within its range).
+
+Layout, with the diagnosis's split (``fit_share``): ``[base, first half] [probes] [base,
+second half] | [probes]``: the probes are ``1 - fit_share`` of the whole, so the last copy is
+the held-out part.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ipmc_driver.signals import mixed
+
+from .record import DiagnosisRecord
+from .results import Diagnosis, Outcome
+
+EXPERIMENT_FORMAT = "ipmc-ros-experiment"
+EXPERIMENT_FORMAT_VERSION = 1
+#: The H-bridge's limit (V): no proposed voltage goes beyond it.
+ACTUATOR_LIMIT_V = 3.0
+#: Probe levels as a share of the record's largest |u|: inside the range the model was
+#: identified on, with room for the identification input around them.
+LEVEL_SHARE = 0.8
+
+
+@dataclass(frozen=True)
+class Probe:
+    """A candidate's deciding input: voltages at the record's rate and why they decide."""
+
+    effect: str
+    u_v: np.ndarray
+    reason: str
+
+
+@dataclass(frozen=True)
+class ExperimentPart:
+    name: str
+    effect: str
+    start_s: float
+    duration_s: float
+    reason: str
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """The proposed excitation: voltages ``u_v`` at ``rate_hz``, and its parts."""
+
+    rate_hz: float
+    fit_share: float
+    u_v: np.ndarray
+    parts: tuple[ExperimentPart, ...]
+
+    @property
+    def duration_s(self) -> float:
+        return self.u_v.size / self.rate_hz
+
+    @property
+    def decides(self) -> list[str]:
+        return sorted({p.effect for p in self.parts if p.effect})
+
+    def as_dict(self) -> dict:
+        return {"format": EXPERIMENT_FORMAT, "format_version": EXPERIMENT_FORMAT_VERSION,
+                "rate_hz": self.rate_hz, "fit_share": self.fit_share,
+                "u_max_v": ACTUATOR_LIMIT_V, "duration_s": self.duration_s,
+                "decides": self.decides,
+                "parts": [vars(p) for p in self.parts],
+                "u_v": [round(float(v), 4) for v in self.u_v]}
+
+
+def probe_level_v(rec: DiagnosisRecord) -> float:
+    """The probes' largest level (V): a share of the record's range, within the H-bridge."""
+    u_abs = max(abs(rec.excitation.u_min_v), abs(rec.excitation.u_max_v))
+    return LEVEL_SHARE * min(u_abs, ACTUATOR_LIMIT_V)
+
+
+def design_experiment(d: Diagnosis, rec: DiagnosisRecord) -> Experiment | None:
+    """The experiment that decides the diagnosis's not-testable candidates; None if none of
+    them has a probe (the ones that need a given model instead of a record)."""
+    from .candidates import CANDIDATES
+
+    probes = []
+    for res in d.candidates:
+        cand = CANDIDATES.get(res.name)
+        if res.outcome is Outcome.NOT_TESTABLE and cand is not None:
+            probe = cand.probe(rec, d.model_before, res)
+            if probe is not None:
+                probes.append(probe)
+    if not probes:
+        return None
+    return assemble(probes, rec, seed=0)
+
+
+def assemble(probes: list[Probe], rec: DiagnosisRecord, seed: int = 0) -> Experiment:
+    """Probes and the identification input in the layout of the module's docstring."""
+    rate = 1.0 / rec.dt_s
+    share = rec.config.fit_share
+    probe_u = np.concatenate([p.u_v for p in probes])
+    n_probe = probe_u.size
+    n_total = int(np.ceil(n_probe / (1.0 - share)))
+    n_base = max(n_total - 2 * n_probe, int(round(60.0 * rate)))
+    amp = min(max(abs(rec.excitation.u_min_v), abs(rec.excitation.u_max_v)), ACTUATOR_LIMIT_V)
+    _, base = mixed(n_base / rate, rate, amp, seed=seed)
+    half = base.size // 2
+    pieces = [("identification input, first half", "", base[:half],
+               "covers the record's range in amplitude and frequency for the core model")]
+    pieces += [(f"{p.effect} probe", p.effect, p.u_v, p.reason) for p in probes]
+    pieces.append(("identification input, second half", "", base[half:],
+                   "covers the record's range in amplitude and frequency for the core model"))
+    pieces += [(f"{p.effect} probe, repeated as the held-out part", p.effect, p.u_v, p.reason)
+               for p in probes]
+    parts, start = [], 0
+    for name, effect, u, reason in pieces:
+        parts.append(ExperimentPart(name, effect, start / rate, u.size / rate, reason))
+        start += u.size
+    u_all = np.clip(np.concatenate([u for _, _, u, _ in pieces]), -ACTUATOR_LIMIT_V,
+                    ACTUATOR_LIMIT_V)
+    return Experiment(rate, share, u_all, tuple(parts))
+
+
+def holds(levels_v, hold_s: float, rate_hz: float) -> np.ndarray:
+    """Voltages held at each of ``levels_v`` for ``hold_s``, one after the other."""
+    n = int(round(hold_s * rate_hz))
+    return np.concatenate([np.full(n, float(v)) for v in levels_v])
+
+
+def crossings(amplitude_v: float, period_s: float, cycles: int, rate_hz: float) -> np.ndarray:
+    """A triangle wave of ``amplitude_v`` around 0 V: slow, even crossings of 0 V."""
+    t = np.arange(int(round(cycles * period_s * rate_hz))) / rate_hz
+    phase = (t / period_s) % 1.0
+    return amplitude_v * (4.0 * np.abs(phase - 0.5) - 1.0)
