@@ -274,7 +274,8 @@ class GeneralizedPI:
     row_step : int
         Fit on every ``row_step``-th sample (the states run at the full rate).
     max_nfev : int
-        Trust-region iterations of each joint fit.
+        Trust-region iterations of each joint fit (at most; it stops earlier once converged).
+        With the direction memory's sharper features the fit needs several tens.
     max_delay_s : float
         Longest transport delay searched (s; 0: none). The delay the linear part prefers is
         fitted beside no delay, and the blocked free-run CV keeps the better: a least-squares
@@ -316,7 +317,7 @@ class GeneralizedPI:
     def __init__(self, memory_taus_s=DEFAULT_MEMORY_TAUS_S, play_channels: int = 5,
                  threshold_shares=DEFAULT_THRESHOLD_SHARES, n_knots: int = 10,
                  rate_limit: bool = True, alphas=DEFAULT_ALPHAS, n_folds: int = 5,
-                 row_step: int = 2, max_nfev: int = 25, max_delay_s: float = 0.3,
+                 row_step: int = 2, max_nfev: int = 60, max_delay_s: float = 0.3,
                  dt_s: float = 0.01, delay_s: float | None = None, dead_zone_v: float = 0.0,
                  rate_channel: bool = False, drift: bool = False,
                  path_memory_v=DEFAULT_PATH_MEMORY_V, output_taus_s=(),

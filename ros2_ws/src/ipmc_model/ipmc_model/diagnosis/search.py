@@ -19,6 +19,10 @@ from .experiment import design_experiment
 from .record import DiagnosisRecord
 from .results import CandidateResult, Diagnosis, Evidence, Outcome, Round
 
+#: Trust-region iterations of the core model's fits and of its candidates' refits: without
+#: direction memory the core converges within them, and every round refits it several times.
+CORE_NFEV = 25
+
 
 def core_model(rec: DiagnosisRecord, progress=None) -> GeneralizedPI:
     """The diagnosis's own model: a GPI with the actuator's fast time scales only (charging,
@@ -31,7 +35,8 @@ def core_model(rec: DiagnosisRecord, progress=None) -> GeneralizedPI:
     the loss differentials the decision rests on."""
     taus = tuple(t for t in DEFAULT_MEMORY_TAUS_S if t < rec.config.creep_min_tau_s)
     return GeneralizedPI(memory_taus_s=taus, delay_s=0.0, dt_s=rec.dt_s, direction_memory_v=(),
-                         progress=progress).fit(rec.u_v[rec.fit], rec.y_mm[rec.fit])
+                         max_nfev=CORE_NFEV, progress=progress
+                         ).fit(rec.u_v[rec.fit], rec.y_mm[rec.fit])
 
 
 def _given(model, rec: DiagnosisRecord) -> GeneralizedPI:
