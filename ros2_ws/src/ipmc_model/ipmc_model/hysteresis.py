@@ -286,6 +286,9 @@ class GeneralizedPI:
     path_memory_v, direction_memory_v : sequence of float
         Travels (V) of the path-memory channels (on the charge) and of the direction-memory
         channels; () leaves them out.
+    start_tau_factors : sequence of float
+        Charging time constants tried as the joint fit's start, as multiples of the first
+        guess (30 samples); the one whose linear fit of the rest explains most is kept.
     direction_channels : int
         Direction memory acts on the charge and the ``direction_channels - 1`` fastest
         relaxations (the strain that drives the polymer's hysteresis). Slower channels seldom
@@ -322,7 +325,7 @@ class GeneralizedPI:
                  rate_channel: bool = False, drift: bool = False,
                  path_memory_v=DEFAULT_PATH_MEMORY_V, output_taus_s=(),
                  direction_memory_v=DEFAULT_DIRECTION_MEMORY_V, direction_channels: int = 3,
-                 progress=None):
+                 start_tau_factors=INITIAL_TAU_FACTORS, progress=None):
         self.memory_taus_s = tuple(float(t) for t in memory_taus_s)
         self.play_channels = play_channels
         self.threshold_shares = tuple(float(s) for s in threshold_shares)
@@ -342,6 +345,7 @@ class GeneralizedPI:
         self.output_taus_s = tuple(float(t) for t in output_taus_s)
         self.direction_memory_v = tuple(float(t) for t in direction_memory_v)
         self.direction_channels = int(direction_channels)
+        self.start_tau_factors = tuple(float(f) for f in start_tau_factors)
         self.progress = progress
         self.weights_ = None
         self.neutral_output_stage()
@@ -484,7 +488,7 @@ class GeneralizedPI:
         return x, self._cross_validate(u, y, x)
 
     def _best_start(self, u, y, theta0: np.ndarray, bounds):
-        """The joint fit's start: of the charging time constants ``INITIAL_TAU_FACTORS`` x the
+        """The joint fit's start: of the charging time constants ``start_tau_factors`` x the
         first guess (the slew limit scaled inversely: the same voltage swing), the one whose
         linear fit of the rest explains most; a (variance, theta, ...) as ``_linear_start``."""
         if not self.rate_limit:
@@ -492,7 +496,7 @@ class GeneralizedPI:
         lo, hi = np.asarray(bounds[0]) + 1e-9, np.asarray(bounds[1]) - 1e-9
         starts = [self._linear_start(u, y, np.clip(theta0 + math.log(f) * np.array([1.0, -1.0]),
                                                    lo, hi))
-                  for f in INITIAL_TAU_FACTORS]
+                  for f in self.start_tau_factors or (1.0,)]
         return min(starts, key=lambda st: st[0])
 
     def _linear_start(self, u, y, theta):
@@ -683,7 +687,8 @@ class GeneralizedPI:
                 "path_memory_v": list(self.path_memory_v),
                 "output_taus_s": list(self.output_taus_s),
                 "direction_memory_v": list(self.direction_memory_v),
-                "direction_channels": self.direction_channels}
+                "direction_channels": self.direction_channels,
+                "start_tau_factors": list(self.start_tau_factors)}
 
 
 class GpiStepper:

@@ -19,8 +19,9 @@ from .experiment import design_experiment
 from .record import DiagnosisRecord
 from .results import CandidateResult, Diagnosis, Evidence, Outcome, Round
 
-#: Trust-region iterations of the core model's fits and of its candidates' refits: without
-#: direction memory the core converges within them, and every round refits it several times.
+#: Trust-region iterations of the core model's fits and of its candidates' refits (with one
+#: start each): without direction memory the core converges within them, and every round
+#: refits it many times, so the start grid's extra linear fits would multiply the run time.
 CORE_NFEV = 25
 
 
@@ -35,7 +36,7 @@ def core_model(rec: DiagnosisRecord, progress=None) -> GeneralizedPI:
     the loss differentials the decision rests on."""
     taus = tuple(t for t in DEFAULT_MEMORY_TAUS_S if t < rec.config.creep_min_tau_s)
     return GeneralizedPI(memory_taus_s=taus, delay_s=0.0, dt_s=rec.dt_s, direction_memory_v=(),
-                         max_nfev=CORE_NFEV, progress=progress
+                         max_nfev=CORE_NFEV, start_tau_factors=(1.0,), progress=progress
                          ).fit(rec.u_v[rec.fit], rec.y_mm[rec.fit])
 
 
