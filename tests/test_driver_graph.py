@@ -172,44 +172,54 @@ def read_bag(path: Path) -> tuple[dict[int, float], dict[int, tuple[float, float
     return disp, volt
 
 
+def _start_rig_graph(procs, env, context, tmp_path, events):
+    """Emulator (pty, its event lines into ``events``), driver and recorder, up and
+    matched; returns the fault injector, the bag path and the probe."""
+    emu = procs.start(
+        "emulator",
+        [sys.executable, "-m", "ipmc_driver.emulator", "--rate-hz", str(RATE_HZ),
+         "--events", "--log", str(tmp_path / "rig.csv"), "--link", str(tmp_path / "ttyRIG")],
+        env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
+    port = emu.stdout.readline().strip()
+    assert port == str(tmp_path / "ttyRIG") and os.path.exists(port)
+
+    def drain():
+        for line in emu.stdout:
+            stamp, text = line.split(" ", 1)
+            events.append((float(stamp), text.strip()))
+
+    threading.Thread(target=drain, daemon=True).start()
+
+    def fault(line):
+        emu.stdin.write(line + "\n")
+        emu.stdin.flush()
+
+    procs.start("driver", [sys.executable, "-m", "ipmc_driver.nodes.driver", "--ros-args",
+                           "-p", f"port:={port}", "-p", f"sample_rate_hz:={RATE_HZ}.0",
+                           "-p", f"watchdog_s:={WATCHDOG_S}",
+                           "-p", "diagnostics_period_s:=0.25"], env)
+    bag = tmp_path / "bag"
+    procs.start("recorder", [sys.executable, "-m", "ipmc_driver.nodes.recorder",
+                             "--ros-args", "-p", f"output:={bag}",
+                             "-p", "topics:=[/ipmc/voltage,/ipmc/displacement]"], env)
+    probe = Probe(context)
+    try:
+        probe.wait_for(lambda: probe.samples and probe.node.count_subscribers(
+            "/ipmc/displacement") >= 2 and probe.command.get_subscription_count() >= 1,
+            30.0, "driver samples and recorder subscription")
+    except BaseException:
+        probe.close()
+        raise
+    return fault, bag, probe
+
+
 def test_driver_through_emulator_link_with_faults_watchdog_and_shutdown(ros_env, tmp_path):
     env, context = ros_env
     procs = Processes()
     probe = None
     events: list[tuple[float, str]] = []
     try:
-        # --- the graph: emulator (pty), driver, recorder
-        emu = procs.start(
-            "emulator",
-            [sys.executable, "-m", "ipmc_driver.emulator", "--rate-hz", str(RATE_HZ),
-             "--events", "--log", str(tmp_path / "rig.csv"), "--link", str(tmp_path / "ttyRIG")],
-            env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
-        port = emu.stdout.readline().strip()
-        assert port == str(tmp_path / "ttyRIG") and os.path.exists(port)
-
-        def drain():
-            for line in emu.stdout:
-                stamp, text = line.split(" ", 1)
-                events.append((float(stamp), text.strip()))
-
-        threading.Thread(target=drain, daemon=True).start()
-
-        def fault(line):
-            emu.stdin.write(line + "\n")
-            emu.stdin.flush()
-
-        procs.start("driver", [sys.executable, "-m", "ipmc_driver.nodes.driver", "--ros-args",
-                               "-p", f"port:={port}", "-p", f"sample_rate_hz:={RATE_HZ}.0",
-                               "-p", f"watchdog_s:={WATCHDOG_S}",
-                               "-p", "diagnostics_period_s:=0.25"], env)
-        bag = tmp_path / "bag"
-        procs.start("recorder", [sys.executable, "-m", "ipmc_driver.nodes.recorder",
-                                 "--ros-args", "-p", f"output:={bag}",
-                                 "-p", "topics:=[/ipmc/voltage,/ipmc/displacement]"], env)
-        probe = Probe(context)
-        probe.wait_for(lambda: probe.samples and probe.node.count_subscribers(
-            "/ipmc/displacement") >= 2 and probe.command.get_subscription_count() >= 1,
-            30.0, "driver samples and recorder subscription")
+        fault, bag, probe = _start_rig_graph(procs, env, context, tmp_path, events)
 
         # --- 1. a command sequence through the serial link
         t_clean = time.monotonic()
@@ -265,7 +275,13 @@ def test_driver_through_emulator_link_with_faults_watchdog_and_shutdown(ros_env,
     assert all(p.returncode == 0 for p in procs.procs.values()), {
         n: p.returncode for n, p in procs.procs.items()}
 
-    # Faults were counted and the link came back fast enough.
+    _check_link(diag, resumed_after_s, zero_after_s)
+    rows = _check_rig_log(tmp_path / "rig.csv", events, t_sigint, t_replug)
+    _check_bag(bag, rows, probe, t_clean, t_faults)
+
+
+def _check_link(diag, resumed_after_s, zero_after_s):
+    """Faults were counted and the link came back fast enough."""
     link = diag["driver: link"]
     assert int(link["bad_crc"]) >= 3
     assert int(link["truncated"]) >= 2
@@ -278,8 +294,12 @@ def test_driver_through_emulator_link_with_faults_watchdog_and_shutdown(ros_env,
     assert WATCHDOG_S - 0.1 < zero_after_s < WATCHDOG_S + 0.4
     assert diag["driver: command"]["clamped"] != "0"
 
-    # The rig log: every sample the emulator took, and whether its frame went out intact.
-    with open(tmp_path / "rig.csv") as f:
+
+
+def _check_rig_log(path, events, t_sigint, t_replug):
+    """The rig log: every sample the emulator took, and whether its frame went out
+    intact; returns its rows."""
+    with open(path) as f:
         rows = [dict(r) for r in csv.DictReader(f)]
     assert [int(r["counter"]) for r in rows] == list(range(len(rows)))
     setpoints = [float(r["setpoint_v"]) for r in rows]
@@ -295,7 +315,11 @@ def test_driver_through_emulator_link_with_faults_watchdog_and_shutdown(ros_env,
     rig_trips = [t for t, e in events if e.startswith("watchdog")]
     assert all(t_unplugged < t < t_replug for t in rig_trips), (rig_trips, t_unplugged, t_replug)
 
-    # The bag: the plant's response, every sample one of the rig's intact frames.
+    return rows
+
+
+def _check_bag(bag, rows, probe, t_clean, t_faults):
+    """The bag: the plant's response, every sample one of the rig's intact frames."""
     disp, volt = read_bag(bag)
     stamps = sorted(set(disp) & set(volt))
     # The driver publishes both topics for every sample; only at the ends may the recorder hold
