@@ -25,6 +25,7 @@ setup(
         "console_scripts": [
             "controller = ipmc_control.nodes.controller:main",
             "reference = ipmc_control.nodes.reference:main",
+            "excitation = ipmc_control.nodes.excitation:main",
             "track = ipmc_control.track_cli:main",
             "bringup = ipmc_control.bringup:main",
         ],

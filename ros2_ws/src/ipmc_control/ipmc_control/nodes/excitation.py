@@ -1,0 +1,123 @@
+"""excitation: drives the IPMC open loop, one voltage per sample, for an identification record.
+
+Publishes ``/ipmc/command`` (std_msgs/Float64, V) and ``/ipmc/command_stamped``
+(Vector3Stamped, x in V, stamped with the sample it answers: a lock-step sim_plant applies it
+to that sample), one voltage per ``/ipmc/displacement`` sample, so the excitation runs at the
+plant's (or the rig's) own rate, in real time or lock-step alike. The voltages come from
+``ipmc_control.excitation``: ``kind`` ``mixed`` | ``steps`` | ``random-sine`` (with
+``amplitude_v``, ``hold_s``, ``duration_s``, ``seed``) or ``file`` (``path``: a ``t,u`` CSV or
+an ``ipmc diagnose`` next_experiment.json at ``rate_hz``); never beyond 3 V.
+
+The excitation starts with the first sample after ``/ipmc/command`` has matched
+``min_subscribers`` subscriptions (the plant and a recorder), so a recorder holds every
+command; until then each sample is answered with 0 V. After the last voltage it commands
+0 V, logs how many samples it played, and exits (code 0) ``linger_s`` later: the end of the
+node is the end of the run for ``ipmc bringup --excite``.
+"""
+
+from __future__ import annotations
+
+from geometry_msgs.msg import PointStamped, Vector3Stamped
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from std_msgs.msg import Float64
+
+from ipmc_control.excitation import KINDS, ExcitationError, load_excitation, make_excitation
+from ipmc_driver.matching import MatchGate
+from ipmc_driver.node_runtime import (
+    ParameterSpec,
+    Terminated,
+    declare_checked,
+    non_negative,
+    one_of,
+    positive,
+    run_node,
+)
+from ipmc_driver.qos import COMMAND_QOS, SAMPLE_QOS
+
+PARAMETERS = {
+    "kind": ParameterSpec("mixed", " | ".join((*KINDS, "file")), True,
+                          one_of(*KINDS, "file")),
+    "path": ParameterSpec("", "file: CSV (t, u in s, V) or next_experiment.json", True),
+    "amplitude_v": ParameterSpec(3.0, "largest |voltage|, V (<= 3)", True, positive),
+    "hold_s": ParameterSpec(8.0, "mixed/steps: length of each held level, s", True, positive),
+    "duration_s": ParameterSpec(240.0, "length, s (a file: at most this long; 0 = all of it)",
+                                True, non_negative),
+    "seed": ParameterSpec(0, "seed of the random parts (>= 0)", True, non_negative),
+    "rate_hz": ParameterSpec(100.0, "the plant's sampling rate, Hz", True, positive),
+    "min_subscribers": ParameterSpec(
+        1, "start once /ipmc/command has matched this many subscriptions", True, non_negative),
+    "linger_s": ParameterSpec(0.5, "wall time between the last command and the exit, s", True,
+                              non_negative),
+}
+
+
+class ExcitationNode(Node):
+    def __init__(self, **node_kwargs) -> None:
+        super().__init__("excitation", **node_kwargs)
+        p = declare_checked(self, PARAMETERS)
+        try:
+            if p["kind"] == "file":
+                self.excitation = load_excitation(p["path"], p["rate_hz"],
+                                                  p["duration_s"] or None)
+            else:
+                self.excitation = make_excitation(
+                    p["kind"], amplitude_v=p["amplitude_v"], hold_s=p["hold_s"],
+                    seconds=p["duration_s"], rate_hz=p["rate_hz"], seed=p["seed"])
+        except ExcitationError as exc:
+            raise ValueError(str(exc)) from None
+        self._k = -1        # index of the next voltage; -1 until the start
+        self._linger_s = p["linger_s"]
+        self.pub = self.create_publisher(Float64, "/ipmc/command", COMMAND_QOS)
+        self.pub_stamped = self.create_publisher(Vector3Stamped, "/ipmc/command_stamped",
+                                                 COMMAND_QOS)
+        self._gate = MatchGate(self.count_subscribers,
+                               [(self.pub, "/ipmc/command", p["min_subscribers"])],
+                               warn=self.get_logger().warn)
+        self.create_subscription(PointStamped, "/ipmc/displacement", self._on_sample,
+                                 SAMPLE_QOS)
+        self.get_logger().info(f"excitation: {self.excitation.describe()}")
+
+    def _on_sample(self, msg: PointStamped) -> None:
+        u = self.excitation.u_v
+        if self._k < 0 and self._gate.ready():
+            self._k = 0
+            self.get_logger().info("excitation: started")
+        if 0 <= self._k < u.size:
+            self._command(float(u[self._k]), msg)
+            self._k += 1
+            if self._k == u.size:
+                self.get_logger().info(f"excitation: finished, {u.size} samples "
+                                       f"({self.excitation.duration_s:g} s)")
+                self.create_timer(max(self._linger_s, 1e-3), self._exit,
+                                  clock=Clock(clock_type=ClockType.STEADY_TIME))
+        else:
+            self._command(0.0, msg)
+
+    def _command(self, u_v: float, sample: PointStamped) -> None:
+        self.pub.publish(Float64(data=u_v))
+        stamped = Vector3Stamped()
+        stamped.header = sample.header
+        stamped.vector.x = u_v
+        self.pub_stamped.publish(stamped)
+
+    def _exit(self) -> None:
+        raise Terminated()
+
+    def destroy_node(self) -> None:
+        """Leave the actuator at 0 V on every exit path."""
+        try:
+            self.pub.publish(Float64(data=0.0))
+        finally:
+            super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> None:
+    run_node(ExcitationNode, args, name="excitation", doc=__doc__,
+             usage="excitation [--ros-args -p kind:=mixed|steps|random-sine|file "
+                   "-p path:=next_experiment.json -p amplitude_v:=3.0 -p hold_s:=8.0 "
+                   "-p duration_s:=240.0 -p rate_hz:=100.0 -p min_subscribers:=2]")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,96 @@
+"""Tests of the open-loop excitations (ipmc_control.excitation). Plain pytest, no ROS."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from ipmc_control.excitation import (
+    KINDS,
+    ExcitationError,
+    load_excitation,
+    make_excitation,
+    save_csv,
+)
+from ipmc_model.residuals import find_holds
+
+
+def test_importing_the_core_leaves_rclpy_out():
+    code = ("import sys, ipmc_control.excitation, ipmc_control.reach, ipmc_control.console; "
+            "assert 'rclpy' not in sys.modules, 'rclpy imported'")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_every_kind_stays_within_3_v_and_is_seeded(kind):
+    a = make_excitation(kind, seconds=60.0, hold_s=5.0, seed=3)
+    b = make_excitation(kind, seconds=60.0, hold_s=5.0, seed=3)
+    assert a.u_v.size == 6000 and a.rate_hz == 100.0
+    assert np.max(np.abs(a.u_v)) <= 3.0
+    assert_allclose(a.u_v, b.u_v, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("kind", ["mixed", "steps"])
+def test_default_excitations_hold_levels_spanning_the_range_on_both_sides_of_the_split(kind):
+    """What identification and diagnosis need: holds of several seconds (creep) at levels
+    spanning +-amplitude, in the fit part (first 70 %) and the held-out part (last 30 %)."""
+    exc = make_excitation(kind)       # the defaults: 240 s, holds of 8 s, 3 V
+    holds = find_holds(exc.u_v, 0.01, 3.0)
+    cut = int(0.7 * exc.u_v.size)
+    assert sum(b <= cut for _, b in holds) >= 4 and sum(a >= cut for a, _ in holds) >= 2
+    levels = sorted({round(float(exc.u_v[a]), 2) for a, _ in holds})
+    assert levels[0] <= -2.9 and levels[-1] >= 2.9 and any(abs(v) < 1.6 for v in levels)
+    assert exc.u_v.min() == pytest.approx(-3.0) and exc.u_v.max() == pytest.approx(3.0)
+    # steps: a level change at every hold's end (the delay shows there)
+    assert np.count_nonzero(np.abs(np.diff(exc.u_v)) > 0.5) >= 20
+
+
+def test_random_sine_has_no_holds_and_a_bad_amplitude_is_refused():
+    assert make_excitation("random-sine", seconds=60.0).holds() == []
+    with pytest.raises(ExcitationError, match="<= 3 V"):
+        make_excitation("mixed", amplitude_v=3.5)
+    with pytest.raises(ExcitationError, match="too short for two holds of 8 s"):
+        make_excitation("mixed", seconds=20.0)
+    with pytest.raises(ExcitationError, match="choose one of"):
+        make_excitation("chirp")
+
+
+def test_a_csv_plays_back_exactly_and_is_checked(tmp_path):
+    exc = make_excitation("steps", seconds=20.0, hold_s=2.0, seed=1)
+    back = load_excitation(save_csv(exc, tmp_path / "u.csv"), 100.0)
+    assert_allclose(back.u_v, exc.u_v, atol=1e-6)
+    assert load_excitation(tmp_path / "u.csv", 100.0, seconds=5.0).u_v.size == 500
+    with pytest.raises(ExcitationError, match="sampled at 100 Hz but the plant at 50 Hz"):
+        load_excitation(tmp_path / "u.csv", 50.0)
+    (tmp_path / "hot.csv").write_text("t,u\n0,0\n0.01,3.5\n0.02,0\n")
+    with pytest.raises(ExcitationError, match="asks for 3.5 V, beyond"):
+        load_excitation(tmp_path / "hot.csv", 100.0)
+    (tmp_path / "ty.csv").write_text("t,y\n0,0\n0.01,1\n0.02,0\n")
+    with pytest.raises(ExcitationError, match="columns t and u"):
+        load_excitation(tmp_path / "ty.csv", 100.0)
+    (tmp_path / "u.txt").write_text("t,u\n")
+    with pytest.raises(ExcitationError, match=r"\.csv \(t,u\) or an ipmc diagnose"):
+        load_excitation(tmp_path / "u.txt", 100.0)
+
+
+def test_an_experiment_of_ipmc_diagnose_plays_its_voltages(tmp_path):
+    from ipmc_model.diagnosis.experiment import EXPERIMENT_FORMAT, Experiment, holds
+
+    u = np.concatenate([holds([2.0, -2.0], 4.0, 100.0), np.zeros(100)])
+    doc = Experiment(100.0, 0.7, u, ()).as_dict()
+    assert doc["format"] == EXPERIMENT_FORMAT
+    (tmp_path / "next_experiment.json").write_text(json.dumps(doc))
+    exc = load_excitation(tmp_path / "next_experiment.json", 100.0)
+    assert_allclose(exc.u_v, u)
+    assert len(exc.holds()) == 2
+    (tmp_path / "other.json").write_text(json.dumps({**doc, "format": "ipmc-ros-model"}))
+    with pytest.raises(ExcitationError, match="not an experiment of ipmc diagnose"):
+        load_excitation(tmp_path / "other.json", 100.0)
+    (tmp_path / "fast.json").write_text(json.dumps({**doc, "rate_hz": 200.0}))
+    with pytest.raises(ExcitationError, match="200 Hz but the plant at 100 Hz"):
+        load_excitation(tmp_path / "fast.json", 100.0)
