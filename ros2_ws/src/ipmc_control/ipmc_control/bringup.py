@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -47,7 +48,7 @@ def ros_args(params: dict) -> list[str]:
 #: The ROS package that installs each node executable (launch files need it).
 PACKAGE_OF = {"sim_plant": "ipmc_driver", "driver": "ipmc_driver", "recorder": "ipmc_driver",
               "model_server": "ipmc_model", "controller": "ipmc_control",
-              "reference": "ipmc_control"}
+              "reference": "ipmc_control", "excitation": "ipmc_control"}
 
 
 @dataclass
@@ -148,8 +149,10 @@ LISTENERS = ("controller", "model_server", "recorder")
 
 def graph_specs(*, rig_port: str | None, lockstep: bool, model: str | None, mode: str,
                 reference: str, plant_effects: list[str], record: str | None,
-                rate_hz: float = 100.0) -> list[NodeSpec]:
-    """The nodes of the standard graph (the same as the launch files)."""
+                rate_hz: float = 100.0, reference_params: dict | None = None
+                ) -> list[NodeSpec]:
+    """The nodes of the standard graph (the same as the launch files); ``reference_params``
+    (``amplitude_mm``, ``levels_mm``, ...) set the reference node's generator."""
     sim_time = lockstep and rig_port is None
     common = {"use_sim_time": sim_time}
     specs = []
@@ -172,23 +175,56 @@ def graph_specs(*, rig_port: str | None, lockstep: bool, model: str | None, mode
         **common, "mode": mode, "rate_hz": rate_hz,
         "trigger": "measurement" if sim_time else "timer"}))
     listeners = sum(s.name in LISTENERS for s in specs)
-    ref = {**common, "kind": reference, "rate_hz": rate_hz, "preview_s": 2.0 / rate_hz}
+    ref = {**common, "kind": reference, "rate_hz": rate_hz, "preview_s": 2.0 / rate_hz,
+           **(reference_params or {})}
     if sim_time:
         # the first samples wait until every listener started here has matched (reference)
         ref["min_subscribers"] = listeners
     specs.append(NodeSpec("reference", "reference", ref))
+    specs.append(plant_spec(rig_port=rig_port, lockstep=lockstep, rate_hz=rate_hz,
+                            plant_effects=plant_effects, listeners=listeners))
+    return specs
+
+
+def plant_spec(*, rig_port: str | None, lockstep: bool, rate_hz: float,
+               plant_effects: list[str], listeners: int) -> NodeSpec:
+    """The driver on ``rig_port``, else the simulated plant; in lock-step its time starts once
+    one stamped commander and ``listeners`` subscribers of its samples have matched."""
     if rig_port:
-        specs.append(NodeSpec("driver", "driver", {"port": rig_port,
-                                                   "sample_rate_hz": rate_hz}))
-    else:
-        plant = {"rate_hz": rate_hz, "clock_mode": "lockstep" if lockstep else "realtime"}
-        if lockstep:
-            # Time starts once the controller's stamped commands have matched (sim_plant).
-            plant["lockstep_min_command_publishers"] = 1
-            plant["lockstep_min_subscribers"] = max(1, listeners)
-        if plant_effects:  # an empty list on the command line has no type: leave the default
-            plant["effects"] = list(plant_effects)
-        specs.append(NodeSpec("sim_plant", "sim_plant", plant))
+        return NodeSpec("driver", "driver", {"port": rig_port, "sample_rate_hz": rate_hz})
+    plant = {"rate_hz": rate_hz, "clock_mode": "lockstep" if lockstep else "realtime"}
+    if lockstep:
+        # Time starts once the controller's stamped commands have matched (sim_plant).
+        plant["lockstep_min_command_publishers"] = 1
+        plant["lockstep_min_subscribers"] = max(1, listeners)
+    if plant_effects:  # an empty list on the command line has no type: leave the default
+        plant["effects"] = list(plant_effects)
+    return NodeSpec("sim_plant", "sim_plant", plant)
+
+
+#: Topics an open-loop excitation run records.
+EXCITE_TOPICS = ["/ipmc/command", "/ipmc/voltage", "/ipmc/displacement"]
+
+
+def excite_specs(*, rig_port: str | None, lockstep: bool, excitation: dict,
+                 plant_effects: list[str], record: str | None, rate_hz: float = 100.0
+                 ) -> list[NodeSpec]:
+    """The open-loop graph: the ``excitation`` node (parameters ``excitation``: ``kind``,
+    ``path``, ``amplitude_v``, ...) drives the plant or rig, an optional recorder records it;
+    no controller, no model server. The excitation starts once its commands reach the plant
+    and the recorder."""
+    sim_time = lockstep and rig_port is None
+    specs = []
+    if record:
+        rec = {"use_sim_time": sim_time, "output": record, "topics": list(EXCITE_TOPICS)}
+        if sim_time:
+            rec["await_publishers"] = ["/ipmc/command"]
+        specs.append(NodeSpec("recorder", "recorder", rec))
+    listeners = 1 + bool(record)    # the excitation and the recorder take every sample
+    specs.append(NodeSpec("excitation", "excitation", {
+        **excitation, "rate_hz": rate_hz, "min_subscribers": listeners}))
+    specs.append(plant_spec(rig_port=rig_port, lockstep=lockstep, rate_hz=rate_hz,
+                            plant_effects=plant_effects, listeners=listeners))
     return specs
 
 
@@ -218,6 +254,56 @@ def _launch_list(text: str) -> list[str]:
     return [v.strip() for v in text.split(",") if v.strip()]
 
 
+#: The reference's settings a user gives: node parameter -> (type, meaning); on the command
+#: line as ``--amplitude-mm`` etc., in the launch files as ``amplitude_mm:=``.
+REFERENCE_OPTIONS = {
+    "amplitude_mm": (float, "sine: amplitude, mm"),
+    "frequency_hz": (float, "sine: frequency, Hz"),
+    "value_mm": (float, "constant: the displacement held, mm"),
+    "levels_mm": (list, "steps: levels, mm (comma list)"),
+    "hold_s": (float, "steps: time per level, s"),
+    "path": (str, "file: reference CSV with columns t, y (s, mm)"),
+}
+
+
+def reference_params(given: dict[str, str | None]) -> dict:
+    """The reference node's parameters from the options' text (None or "" = not given):
+    numbers parsed, levels a list of floats, a path made absolute. Raises ``ValueError``
+    naming the option for text that is not a number."""
+    out: dict = {}
+    for name, (kind, _) in REFERENCE_OPTIONS.items():
+        text = given.get(name)
+        if text is None or str(text).strip() == "":
+            continue
+        try:
+            if kind is float:
+                out[name] = float(text)
+            elif kind is list:
+                out[name] = [float(v) for v in _launch_list(str(text))]
+            else:
+                out[name] = str(Path(text).resolve())
+        except ValueError:
+            raise ValueError(f"{name} {text!r} is not a number"
+                             + (" list (e.g. -2,0,2)" if kind is list else "")) from None
+    return out
+
+
+def check_reference(kind: str, params: dict, *, sim: bool, model: str | None,
+                    rate_hz: float = 100.0) -> tuple[float, float]:
+    """The reference's span (mm), checked against what 3 V reaches on the simulated IPMC
+    (``sim``) and the model's identified range; ``ipmc_control.reach.ReachError`` (a
+    ``ValueError``) in one sentence when it cannot be tracked."""
+    from ipmc_control.reach import build_reference, check_reach, reference_span_mm
+
+    given = dict(params)
+    if "levels_mm" in given and not given["levels_mm"]:
+        raise ValueError("levels_mm needs one or more levels")
+    ref = build_reference(kind, given)
+    span = reference_span_mm(ref, kind, rate_hz)
+    check_reach(span, kind, plant=sim, model=model, rate_hz=rate_hz)
+    return span
+
+
 def launch_arguments(*, rig: bool) -> list[tuple[str, str | None, str]]:
     """(name, default or None if required, description) of each argument of ``rig.launch.py``
     (``rig=True``) or ``sim.launch.py``."""
@@ -227,6 +313,7 @@ def launch_arguments(*, rig: bool) -> list[tuple[str, str | None, str]]:
                               "beside an inverse model it serves predictions and the residual"),
         ("mode", "hybrid", "pid|inverse|hybrid"),
         ("reference", "sine", "constant|sine|random|steps|file"),
+        *((name, "", text) for name, (_, text) in REFERENCE_OPTIONS.items()),
         ("record", "", "bag folder to record")]
     if rig:
         return [("port", None, "serial device of the RS-485 adapter"), *models]
@@ -247,12 +334,15 @@ def launch_specs(args: dict[str, str], *, rig: bool) -> list[NodeSpec]:
     why = mode_needs_model(mode, model or forward)
     if why:
         raise ValueError(why)
+    ref_params = reference_params({k: args.get(k) for k in REFERENCE_OPTIONS})
+    check_reference(args.get("reference", "sine"), ref_params, sim=not rig,
+                    model=model or forward or None)
     specs = graph_specs(
         rig_port=args["port"] if rig else None,
         lockstep=False if rig else _launch_bool("lockstep", args.get("lockstep", "false")),
         model=model or forward or None, mode=mode, reference=args.get("reference", "sine"),
         plant_effects=[] if rig else _launch_list(args.get("plant_effects", "")),
-        record=args.get("record") or None)
+        record=args.get("record") or None, reference_params=ref_params)
     if model and forward:
         server = next(s for s in specs if s.name == "model_server")
         if "model_file" in server.params:
@@ -262,11 +352,124 @@ def launch_specs(args: dict[str, str], *, rig: bool) -> list[NodeSpec]:
     return specs
 
 
-def main(argv: list[str] | None = None) -> int:
+class GraphRun:
+    """One run of a graph from the console: start the nodes, echo their warnings and errors
+    as they happen, print progress every ``PROGRESS_S``, stop them all, and summarise.
+
+    The run ends on Ctrl-C (SIGINT/SIGTERM), after ``seconds``, when a node exits (an error,
+    but the excitation's exit with code 0 is the end of its excitation)."""
+
+    #: Stop order: the commanders first (the excitation's and controller's last command is
+    #: 0 V), then the plant or driver, the recorder last (it keeps the final samples).
+    STOP_ORDER = ["excitation", "reference", "controller", "sim_plant", "driver"]
+
+    def __init__(self, specs: list[NodeSpec], log_dir: Path, *, rig: bool,
+                 total_samples: int | None = None) -> None:
+        from ipmc_control.console import RunStats
+
+        self.specs, self.log_dir, self.rig = specs, Path(log_dir), rig
+        self.total_samples = total_samples
+        self.stats = RunStats(started_s=time.monotonic())
+        self.tails: dict = {}
+        self.elapsed_s = 0.0
+
+    def run(self, stop: dict, seconds: float | None) -> int:
+        """Run until the end (class doc); 0, or 1 when a node failed."""
+        from ipmc_control.console import LogTail
+
+        monitor = self._monitor()
+        code: int | None = None
+        with Graph(env={**os.environ, "PYTHONUNBUFFERED": "1"}, log_dir=self.log_dir) as graph:
+            for spec in self.specs:
+                graph.start(spec)
+                self.tails[spec.name] = LogTail(graph.log_dir / f"{spec.name}.log")
+            print(f"started {', '.join(s.name for s in self.specs)}; logs in {graph.log_dir}",
+                  flush=True)
+            t0 = self.stats.started_s = time.monotonic()
+            next_progress_s = t0 + PROGRESS_S
+            while not stop["now"] and code is None:
+                if monitor is not None:
+                    monitor.spin_for(0.1)
+                else:
+                    time.sleep(0.1)
+                self.echo()
+                code = self._exits(graph)
+                now = time.monotonic()
+                if seconds and now - t0 >= seconds:
+                    break
+                if now >= next_progress_s and code is None:
+                    print(self.stats.progress_line(now, self.total_samples), flush=True)
+                    next_progress_s += PROGRESS_S
+            took = graph.stop_all(order=self.STOP_ORDER)
+            self.elapsed_s = time.monotonic() - t0
+        if monitor is not None:
+            monitor.close()
+        self.echo()
+        print("stopped: " + ", ".join(f"{n} {t:.2f} s" for n, t in took.items()), flush=True)
+        return code or 0
+
+    def _monitor(self):
+        try:
+            from ipmc_control.run_monitor import RunMonitor
+            return RunMonitor(self.stats)
+        except ImportError as exc:   # rclpy absent: logs and the bag still tell
+            print(f"note: no progress on the console ({exc})", file=sys.stderr)
+            return None
+
+    def _exits(self, graph: Graph) -> int | None:
+        """None while every node runs; 0 when the excitation ended; 1 when a node failed."""
+        failed = graph.failed()
+        if not failed:
+            return None
+        if failed == {"excitation": 0}:
+            print("excitation finished", flush=True)
+            return 0
+        for name, code in failed.items():
+            print(f"{name} exited with code {code}:\n{graph.log_tail(name)}", file=sys.stderr)
+        return 1
+
+    def echo(self) -> None:
+        """Print the warning and error lines the nodes have logged since the last call."""
+        from ipmc_control.console import alarm_line
+
+        for name, tail in self.tails.items():
+            for line in tail.read():
+                alarm = alarm_line(name, line)
+                if alarm:
+                    self.stats.on_alarm(alarm)
+                    print(alarm, flush=True)
+
+    def summary(self, bag: Path | None) -> list[str]:
+        """The end-of-run summary (``console.summary_lines``), from the bag when recorded."""
+        from ipmc_control.console import bag_figures, summary_lines
+
+        figures: dict = {"rmse": self.stats.tracking_rmse_mm()}
+        notes = []
+        if bag is not None:
+            try:
+                figures = bag_figures(bag, with_reference=self.total_samples is None)
+            except (ValueError, OSError) as exc:
+                notes.append(f"the bag could not be summarised: {exc}")
+        return notes + summary_lines(self.stats, elapsed_s=self.elapsed_s,
+                                     log_dir=self.log_dir, bag=bag, rig=self.rig, **figures)
+
+
+#: Seconds between progress lines on the console.
+PROGRESS_S = 5.0
+#: Excitation defaults: the length and the hold of ``--excite``, s.
+EXCITE_SECONDS = 240.0
+EXCITE_HOLD_S = 8.0
+
+
+def _parser() -> argparse.ArgumentParser:
+    from ipmc_control.excitation import KINDS
+
     parser = argparse.ArgumentParser(
         prog="ipmc bringup",
         description="Start the ipmc-ros graph (plant or rig, model server, controller, "
-                    "reference, optional recorder) as processes; Ctrl-C stops them all.")
+                    "reference, optional recorder) as processes; or, with --excite, drive the "
+                    "plant or rig open loop with an identification voltage and record it. "
+                    "Warnings of every node appear on the console; Ctrl-C stops them all.")
     where = parser.add_mutually_exclusive_group()
     where.add_argument("--sim", action="store_true", help="simulated plant (default)")
     where.add_argument("--rig", metavar="PORT", help="real rig through the driver on PORT")
@@ -274,21 +477,108 @@ def main(argv: list[str] | None = None) -> int:
                         help="simulation: lock-step clock, faster than real time")
     parser.add_argument("--model", help="model file for the feedforward: an inverse model, or a "
                         "forward model with voltage channels (inverted online)")
-    parser.add_argument("--mode", default="hybrid", choices=("pid", "inverse", "hybrid"))
+    parser.add_argument("--mode", choices=("pid", "inverse", "hybrid"),
+                        help="closed loop: control mode (default hybrid)")
     parser.add_argument("--reference", default="sine",
                         help="reference kind: constant | sine | random | steps | file")
+    for name, (_, text) in REFERENCE_OPTIONS.items():
+        parser.add_argument("--" + name.replace("_", "-"), dest=name, metavar="X"
+                            if name != "path" else "CSV", help=f"reference {text}"
+                            + ("; with --excite: each held voltage, s (default "
+                               f"{EXCITE_HOLD_S:g})" if name == "hold_s" else ""))
+    opened = parser.add_mutually_exclusive_group()
+    opened.add_argument("--excite", metavar="KIND|FILE",
+                        help=f"open loop: drive the voltage with {' | '.join(KINDS)} (holds at "
+                             "levels spanning +-amplitude, steps, the whole range) or a FILE "
+                             "(t,u CSV, or next_experiment.json of ipmc diagnose), and stop at "
+                             "its end; no controller, no model server")
+    opened.add_argument("--experiment", metavar="FILE",
+                        help="open loop: play ipmc diagnose's next_experiment.json (as --excite "
+                             "FILE)")
+    parser.add_argument("--amplitude-v", type=float, default=3.0,
+                        help="--excite: largest |voltage|, V (<= 3, the H-bridge's limit)")
+    parser.add_argument("--seed", type=int, default=0, help="--excite: seed of the voltages")
     parser.add_argument("--plant-effect", action="append", default=[],
                         help="simulated plant effect (repeatable)")
-    parser.add_argument("--record", metavar="BAG", help="record the graph's topics to BAG")
-    parser.add_argument("--seconds", type=float, default=0.0,
-                        help="stop after this many wall seconds (default: until Ctrl-C)")
-    args = parser.parse_args(argv)
-    why = mode_needs_model(args.mode, args.model, "--model")
+    parser.add_argument("--record", metavar="BAG", help="record the graph's topics to BAG "
+                        "(a new folder; the nodes' logs go to BAG_logs beside it)")
+    parser.add_argument("--seconds", type=float, default=None,
+                        help="stop after this many wall seconds (default: until Ctrl-C); with "
+                             f"--excite: the excitation's length (default {EXCITE_SECONDS:g} "
+                             "s; a FILE: at most this long)")
+    return parser
+
+
+def log_dir_for(record: str | None) -> Path:
+    """The nodes' log folder: ``BAG_logs`` beside the bag, else one new temporary folder."""
+    if record:
+        bag = Path(record).resolve()
+        return bag.parent / f"{bag.name}_logs"
+    return Path(tempfile.mkdtemp(prefix="ipmc_bringup_"))
+
+
+def plan_excitation(args: argparse.Namespace, rate_hz: float) -> tuple[dict, object]:
+    """The excitation node's parameters and the excitation they give (checked here, so
+    that a bad file or amplitude stops ``bringup`` before any node starts)."""
+    from ipmc_control.excitation import KINDS, load_excitation, make_excitation
+
+    source = args.experiment or args.excite
+    hold_s = float(args.hold_s) if args.hold_s else EXCITE_HOLD_S
+    if source in KINDS:
+        seconds = args.seconds or EXCITE_SECONDS
+        exc = make_excitation(source, amplitude_v=args.amplitude_v, hold_s=hold_s,
+                              seconds=seconds, rate_hz=rate_hz, seed=args.seed)
+        return {"kind": source, "amplitude_v": args.amplitude_v, "hold_s": hold_s,
+                "duration_s": seconds, "seed": args.seed}, exc
+    exc = load_excitation(source, rate_hz, args.seconds)
+    return {"kind": "file", "path": str(Path(source).resolve()),
+            "duration_s": float(args.seconds or 0.0)}, exc
+
+
+def plan(args: argparse.Namespace, rate_hz: float = 100.0) -> tuple[list[NodeSpec], int | None]:
+    """The nodes to start, and the excitation's samples (None for a closed loop); a
+    ``ValueError`` in one sentence for settings that cannot run."""
+    if args.record and Path(args.record).exists():
+        raise ValueError(f"{args.record} exists already; a bag is never written over")
+    given = reference_params({k: getattr(args, k) for k in REFERENCE_OPTIONS})
+    if args.excite or args.experiment:
+        stray = [f"--{k.replace('_', '-')}" for k in given if k != "hold_s"]
+        stray += ["--model"] * bool(args.model) + ["--mode"] * bool(args.mode)
+        if stray:
+            raise ValueError(f"{stray[0]} sets the closed loop; --excite drives the voltage "
+                             "open loop without a controller")
+        params, exc = plan_excitation(args, rate_hz)
+        print(f"excitation {exc.describe()}", flush=True)
+        return excite_specs(rig_port=args.rig, lockstep=args.lockstep, excitation=params,
+                            plant_effects=args.plant_effect, record=args.record,
+                            rate_hz=rate_hz), exc.u_v.size
+    mode = args.mode or "hybrid"
+    why = mode_needs_model(mode, args.model, "--model")
     if why:
-        parser.error(why)
-    specs = graph_specs(rig_port=args.rig, lockstep=args.lockstep, model=args.model,
-                        mode=args.mode, reference=args.reference,
-                        plant_effects=args.plant_effect, record=args.record)
+        raise ValueError(why)
+    lo, hi = check_reference(args.reference, given, sim=args.rig is None,
+                             model=args.model if mode != "pid" else None, rate_hz=rate_hz)
+    print(f"reference {args.reference}: {lo:.2f}..{hi:.2f} mm", flush=True)
+    return graph_specs(rig_port=args.rig, lockstep=args.lockstep, model=args.model, mode=mode,
+                       reference=args.reference, plant_effects=args.plant_effect,
+                       record=args.record, rate_hz=rate_hz, reference_params=given), None
+
+
+def as_options(text: str) -> str:
+    """A message about the reference's parameters in the words of the command line
+    (``levels_mm`` -> ``--levels-mm``)."""
+    names = "|".join(REFERENCE_OPTIONS)
+    return re.sub(rf"\b({names})\b", lambda m: "--" + m.group(1).replace("_", "-"), text)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    try:
+        specs, total_samples = plan(args)
+    except ValueError as exc:
+        print(f"ipmc bringup: error: {as_options(str(exc))}", file=sys.stderr)
+        return 1
     stop = {"now": False}
 
     def on_signal(signum, frame):
@@ -296,23 +586,12 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
-    with Graph() as graph:
-        for spec in specs:
-            graph.start(spec)
-            print(f"started {spec.name} (log {graph.log_dir / spec.name}.log)", flush=True)
-        t0 = time.monotonic()
-        while not stop["now"]:
-            if graph.failed():
-                for name, code in graph.failed().items():
-                    print(f"{name} exited with code {code}:\n{graph.log_tail(name)}",
-                          file=sys.stderr)
-                break
-            if args.seconds and time.monotonic() - t0 >= args.seconds:
-                break
-            time.sleep(0.1)
-        took = graph.stop_all(order=["reference", "controller", "sim_plant", "driver"])
-    print("stopped: " + ", ".join(f"{n} {t:.2f} s" for n, t in took.items()))
-    return 0
+    run = GraphRun(specs, log_dir_for(args.record), rig=bool(args.rig),
+                   total_samples=total_samples)
+    code = run.run(stop, None if total_samples else args.seconds)
+    for line in run.summary(Path(args.record).resolve() if args.record else None):
+        print(line, flush=True)
+    return code
 
 
 if __name__ == "__main__":
