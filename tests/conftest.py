@@ -19,14 +19,15 @@ import pytest
 
 VENV_BIN = Path(sys.executable).parent
 GRACE_S = 2.0
+# Domain IDs 1..100 are safe on Linux; the pid spreads concurrent sessions apart.
+SESSION_DOMAIN_ID = str(1 + os.getpid() % 100)
 
 
 @pytest.fixture(scope="session")
 def ros_env() -> dict:
     """Environment for child processes (and this one): a private domain on localhost."""
     env = dict(os.environ)
-    # Domain IDs 1..100 are safe on Linux; the pid spreads concurrent sessions apart.
-    env["ROS_DOMAIN_ID"] = str(1 + os.getpid() % 100)
+    env["ROS_DOMAIN_ID"] = SESSION_DOMAIN_ID
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     env["PYTHONUNBUFFERED"] = "1"
     saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
@@ -86,6 +87,39 @@ class Processes:
 
     def stop_all(self) -> dict[str, float]:
         return {name: self.stop(name) for name in list(self.procs)}
+
+
+def _domain_processes() -> dict[int, str]:
+    """Processes other than this one whose environment is this session's domain: pid -> argv."""
+    want = {f"ROS_DOMAIN_ID={SESSION_DOMAIN_ID}".encode(),
+            b"ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST"}
+    found = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            if want <= set((entry / "environ").read_bytes().split(b"\0")):
+                found[int(entry.name)] = (entry / "cmdline").read_bytes().replace(
+                    b"\0", b" ").decode(errors="replace").strip()
+        except OSError:   # gone meanwhile, or another user's
+            continue
+    return {pid: argv for pid, argv in found.items() if argv}
+
+
+@pytest.fixture(autouse=True)
+def no_stray_nodes(request):
+    """A test leaves no process on the session's domain behind: a node left running (a
+    grandchild of a launcher, say) would publish into every later test's graph."""
+    yield
+    deadline = time.monotonic() + GRACE_S
+    while (stray := _domain_processes()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    for pid in stray:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except OSError:
+            pass
+    assert not stray, f"{request.node.name} left processes running: {stray}"
 
 
 @pytest.fixture
