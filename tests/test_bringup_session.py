@@ -121,3 +121,19 @@ def test_closed_loop_summary_gives_the_tracking_error_of_the_levels_set(processe
     rmse_mm = float(summary.split("tracking RMSE ")[1].split(" mm")[0])
     assert 0.0 < rmse_mm < 1.0, out
     assert f"logs in {tmp_path / 'hold_logs'}" in summary
+
+
+def test_launch_files_take_the_reference_options_and_check_them():
+    from test_launch_files import LAUNCH_DIR, run_launch_file
+
+    launched = run_launch_file(LAUNCH_DIR / "sim.launch.py", mode="pid", reference="steps",
+                               levels_mm="-2,0,1.5", hold_s="4")
+    params = launched["reference"][2]
+    assert params["levels_mm"] == [-2.0, 0.0, 1.5] and params["hold_s"] == 4.0
+    rig = run_launch_file(LAUNCH_DIR / "rig.launch.py", port="/dev/ttyX", mode="pid",
+                          reference="sine", amplitude_mm="1.5", frequency_hz="0.2")
+    assert rig["reference"][2]["amplitude_mm"] == 1.5
+    assert rig["reference"][2]["frequency_hz"] == 0.2
+    with pytest.raises(ValueError, match="asks for 4.00 mm"):
+        run_launch_file(LAUNCH_DIR / "sim.launch.py", mode="pid", reference="constant",
+                        value_mm="4")

@@ -1,14 +1,31 @@
 """``ipmc bringup``: start the ipmc-ros graph as processes and stop it cleanly (pip-only launch).
 
 `ros2 launch` is not on PyPI, so this starts the same nodes as ``launch/sim.launch.py`` /
-``launch/rig.launch.py`` as child processes of one command, prints where their logs go, and on
-Ctrl-C (or SIGTERM) stops them all: SIGINT first, SIGKILL after a grace period.
+``launch/rig.launch.py`` as child processes of one command and on Ctrl-C (or SIGTERM) stops
+them all: SIGINT first, SIGKILL after a grace period.
 
     ipmc bringup --sim [--lockstep] [--model MODEL.json] [--mode hybrid] [--reference sine]
+        [--amplitude-mm 2.5] [--frequency-hz 0.159] [--value-mm 1.5] [--levels-mm=-2,0,2]
+        [--hold-s 5] [--range-mm=-4,2] [--path REF.csv]
     ipmc bringup --rig /dev/ttyUSB0 --model MODEL.json --record run1
+    ipmc bringup --sim|--rig PORT --excite mixed|steps|random-sine|FILE [--amplitude-v 3]
+        [--hold-s 8] [--seconds 240] --record day1
+    ipmc bringup --sim|--rig PORT --experiment next_experiment.json --record day2
 
 MODEL is an inverse model (``ipmc identify --inverse``) or a forward model with voltage channels
-(``ipmc identify --input-memory-taus ...``), which model_server inverts online.
+(``ipmc identify --input-memory-taus ...``), which model_server inverts online. The reference's
+span is checked before the start: against where +-3 V settles or swings on the simulated IPMC
+(``--sim``) and against the displacements the inverse model was identified on.
+
+``--excite`` (or ``--experiment``) runs open loop: the ``excitation`` node drives the voltage,
+one value per sample (``ipmc_control.excitation``: holds at levels spanning the range for creep,
+steps for a delay, the whole +-amplitude), no controller and no model server; the run stops at
+the excitation's end.
+
+The console shows every node's warnings and errors as they happen (``[node] ...``), a progress
+line every 5 s (time, samples, rate, the driver's link state, the tracking error so far) and a
+summary at the end (from the bag when recorded). The nodes' logs go to ``BAG_logs`` beside the
+bag, else to one temporary folder the summary names.
 """
 
 from __future__ import annotations
@@ -260,8 +277,9 @@ REFERENCE_OPTIONS = {
     "amplitude_mm": (float, "sine: amplitude, mm"),
     "frequency_hz": (float, "sine: frequency, Hz"),
     "value_mm": (float, "constant: the displacement held, mm"),
-    "levels_mm": (list, "steps: levels, mm (comma list)"),
+    "levels_mm": (list, "steps: levels, mm, comma-separated"),
     "hold_s": (float, "steps: time per level, s"),
+    "range_mm": (list, "random: displacement range min,max, mm"),
     "path": (str, "file: reference CSV with columns t, y (s, mm)"),
 }
 
@@ -481,11 +499,14 @@ def _parser() -> argparse.ArgumentParser:
                         help="closed loop: control mode (default hybrid)")
     parser.add_argument("--reference", default="sine",
                         help="reference kind: constant | sine | random | steps | file")
-    for name, (_, text) in REFERENCE_OPTIONS.items():
-        parser.add_argument("--" + name.replace("_", "-"), dest=name, metavar="X"
-                            if name != "path" else "CSV", help=f"reference {text}"
-                            + ("; with --excite: each held voltage, s (default "
-                               f"{EXCITE_HOLD_S:g})" if name == "hold_s" else ""))
+    for name, (kind, text) in REFERENCE_OPTIONS.items():
+        flag = "--" + name.replace("_", "-")
+        more = {"hold_s": f"; with --excite: each held voltage, s (default {EXCITE_HOLD_S:g})",
+                }.get(name, "")
+        if kind is list:
+            more += f" (a first value below 0 after '=': {flag}=-2,2)"
+        parser.add_argument(flag, dest=name, metavar={list: "A,B,..", str: "CSV"}.get(
+            kind, "X"), help=f"reference {text}{more}")
     opened = parser.add_mutually_exclusive_group()
     opened.add_argument("--excite", metavar="KIND|FILE",
                         help=f"open loop: drive the voltage with {' | '.join(KINDS)} (holds at "

@@ -34,6 +34,9 @@ KIND_PARAMS = {
     "file": ("path", "repeat"),
 }
 HELD_KINDS = ("constant", "steps")
+#: What sets the span of each kind, as a user would change it.
+SETTING = {"constant": "value_mm", "sine": "amplitude_mm", "random": "range_mm",
+           "steps": "levels_mm", "file": "the file's y column"}
 LIMIT_V = 3.0
 #: Length of the hold that gives the settled reach, s.
 SETTLE_S = 30.0
@@ -119,11 +122,11 @@ def check_reach(span_mm: tuple[float, float], kind: str, *, plant: bool,
             how = "settles between" if held else "swings between"
             raise ReachError(
                 f"the reference asks for {asks}, but the simulated IPMC {how} {low:.2f} and "
-                f"{high:.2f} mm at +-{LIMIT_V:g} V; choose {'levels' if held else 'a span'} "
-                "within that")
+                f"{high:.2f} mm at +-{LIMIT_V:g} V; set {SETTING[kind]} within that")
     reach = model_reach_mm(model, held) if model else None
     if reach is not None and (out_of_reach(lo, reach) or out_of_reach(hi, reach)):
         raise ReachError(
             f"the reference asks for {asks}, beyond the {reach[0]:.2f}..{reach[1]:.2f} mm "
             f"{'held ' if held else ''}the model {model} was identified on (its inverse would "
-            "extrapolate); record an excitation that covers it, or ask for less")
+            f"extrapolate); record an excitation that covers it, or set {SETTING[kind]} "
+            "within it")
