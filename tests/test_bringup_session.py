@@ -5,8 +5,10 @@ progress and summary. Real processes over DDS on the session's domain."""
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -137,3 +139,43 @@ def test_launch_files_take_the_reference_options_and_check_them():
     with pytest.raises(ValueError, match="asks for 4.00 mm"):
         run_launch_file(LAUNCH_DIR / "sim.launch.py", mode="pid", reference="constant",
                         value_mm="4")
+
+
+def _unplug_during(processes, emu, argv: list[str]) -> str:
+    """Run bringup with ``argv``; unplug the emulated rig for 1 s after the first progress
+    line; bringup's console output."""
+    bringup = processes.start("bringup", [str(VENV_BIN / "ipmc"), "bringup", *argv])
+    deadline = time.monotonic() + 30.0
+    while "% played" not in processes.log("bringup") and time.monotonic() < deadline:
+        time.sleep(0.2)
+    emu.stdin.write("unplug 1.0\n")
+    emu.stdin.flush()
+    bringup.wait(timeout=RUN_TIMEOUT_S)
+    out = processes.log("bringup")
+    assert bringup.returncode == 0, out
+    return out
+
+
+def test_rig_run_shows_the_link_state_and_its_fault_on_the_console(processes, tmp_path):
+    """Through the rig emulator's pty and the driver: the progress names the link's state, the
+    driver's warning of a lost link reaches the console as it happens, the summary counts it."""
+    emu = subprocess.Popen([sys.executable, "-m", "ipmc_driver.emulator", "--link",
+                            str(tmp_path / "ttyRIG")], env=processes.env,
+                           stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
+    try:
+        port = emu.stdout.readline().strip()
+        out = _unplug_during(processes, emu, [
+            "--rig", port, "--excite", "steps", "--seconds", "12", "--hold-s", "3",
+            "--record", str(tmp_path / "rig")])
+    finally:
+        emu.send_signal(signal.SIGINT)
+        try:
+            emu.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            emu.kill()
+            emu.wait()
+    assert "link connected" in out.split("excitation finished")[0]
+    assert "[driver] [WARN]" in out and "lost" in out, out
+    summary = out[out.index("summary:"):]
+    assert "link: 1 faults, state connected" in summary, out
+    assert "1 faults" in summary and "0 errors" in summary
