@@ -1,6 +1,6 @@
 """Open-loop excitations: the drive voltage (V) played sample by sample to record a model's data.
 
-An identification record must show what the model and its diagnosis will be asked about:
+An identification record has to contain what the model and its diagnosis are asked about:
 
 - input holds of several seconds at levels spanning the range (creep and back-relaxation
   settle during a hold; a loop under feedback never holds the voltage still);
