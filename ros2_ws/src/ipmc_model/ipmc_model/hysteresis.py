@@ -69,6 +69,9 @@ DEFAULT_DIRECTION_MEMORY_V = (0.5, 2.0, 8.0, 32.0)
 #: Charging time constants tried as the joint fit's start, as multiples of the first guess:
 #: the fit's only non-convex parameters, started where a linear fit of the rest explains most.
 INITIAL_TAU_FACTORS = (1 / 30, 0.1, 1 / 3, 1.0, 3.0)
+#: Share of the joint fit's iterations each candidate delay gets before the better one is
+#: fitted on with the rest.
+DELAY_SCREEN_SHARE = 0.25
 #: Play thresholds as shares of the largest |u| of the identification record.
 DEFAULT_THRESHOLD_SHARES = (0.1, 0.25, 0.5, 0.75)
 #: Ridge weights tried by the cross-validation (on standardised features, per sample).
@@ -153,6 +156,23 @@ def _affine_scan(A: np.ndarray, B: np.ndarray, x0: np.ndarray) -> np.ndarray:
     return A * x0 + B
 
 
+#: Samples per block of the play scan: log2(64) passes inside the blocks, then one scan over
+#: the blocks' composites, instead of log2(N) passes over the whole record.
+PLAY_SCAN_BLOCK = 64
+
+
+def _clip_scan(lo: np.ndarray, hi: np.ndarray) -> None:
+    """In place along axis 0: clip ``k`` becomes the composite of clips 0..k (Hillis-Steele)."""
+    a, b = np.empty_like(lo), np.empty_like(lo)
+    shift, n = 1, lo.shape[0]
+    while shift < n:
+        m = n - shift
+        np.minimum(np.maximum(lo[:m], lo[shift:], out=a[:m]), hi[shift:], out=a[:m])
+        np.minimum(np.maximum(hi[:m], lo[shift:], out=b[:m]), hi[shift:], out=b[:m])
+        lo[shift:], hi[shift:] = a[:m], b[:m]
+        shift *= 2
+
+
 def play_bank(X, thresholds, state=None) -> tuple[np.ndarray, np.ndarray]:
     """Play operators (paper Eq. 2) on several channels at once.
 
@@ -161,20 +181,31 @@ def play_bank(X, thresholds, state=None) -> tuple[np.ndarray, np.ndarray]:
 
     A play step is a clip, ``w_k = clip(w_{k-1}, x_k - r, x_k + r)``, and clips compose into
     clips (``clip(clip(w, a1, b1), a2, b2) = clip(w, clip(a1, a2, b2), clip(b1, a2, b2))``),
-    so the whole run is a prefix scan of log2(N) vectorised passes instead of N Python steps.
+    so the whole run is a prefix scan of vectorised passes instead of N Python steps: within
+    blocks of :data:`PLAY_SCAN_BLOCK` samples, then over the blocks. Only min and max: the
+    result is exactly the step-by-step one.
     """
     X = np.asarray(X, dtype=float)
     r = np.asarray(thresholds, dtype=float)
     w0 = np.zeros_like(r) if state is None else np.array(state, dtype=float)
-    lo, hi = X[:, :, None] - r, X[:, :, None] + r
-    shift = 1
-    while shift < X.shape[0]:  # Hillis-Steele scan: F_k <- F_k o F_(k - shift)
-        new_lo = np.minimum(np.maximum(lo[:-shift], lo[shift:]), hi[shift:])
-        new_hi = np.minimum(np.maximum(hi[:-shift], lo[shift:]), hi[shift:])
-        lo[shift:], hi[shift:] = new_lo, new_hi
-        shift *= 2
-    out = np.minimum(np.maximum(w0, lo), hi)
-    return out.reshape(X.shape[0], -1), (out[-1].copy() if len(out) else w0)
+    n = X.shape[0]
+    if n == 0:
+        return np.zeros((0, r.size)), w0
+    nb = -(-n // PLAY_SCAN_BLOCK)
+    Xp = np.concatenate([X, np.repeat(X[-1:], nb * PLAY_SCAN_BLOCK - n, axis=0)])
+
+    def blocks(edge):  # (block position, block, C, M)
+        return edge.reshape(nb, PLAY_SCAN_BLOCK, *r.shape).swapaxes(0, 1).copy()
+
+    lo, hi = blocks(Xp[:, :, None] - r), blocks(Xp[:, :, None] + r)
+    _clip_scan(lo, hi)                         # from each block's start
+    block_lo, block_hi = lo[-1].copy(), hi[-1].copy()
+    _clip_scan(block_lo, block_hi)             # from sample 0 to each block's end
+    starts = np.concatenate([w0[None], np.minimum(np.maximum(w0, block_lo[:-1]),
+                                                  block_hi[:-1])])
+    out = np.minimum(np.maximum(starts[None], lo), hi).swapaxes(0, 1)
+    out = out.reshape(nb * PLAY_SCAN_BLOCK, *r.shape)[:n]
+    return out.reshape(n, -1), out[-1].copy()
 
 
 def place_knots(z: np.ndarray, n: int) -> np.ndarray:
@@ -295,6 +326,11 @@ class GeneralizedPI:
         reverse, so their direction memory is a long-lived state a record pins down poorly.
     output_taus_s : sequence of float
         Relaxations of the charge added after the map (creep); () by default.
+    warm_start : bool
+        A fitted model's ``fit`` keeps its learned structure (relaxations kept, thresholds,
+        delay, feature scaling, map knots) and fits the continuous parameters on from where
+        they are, with a third of ``max_nfev``: a refit on a longer record of the same rig
+        (the whole record after a comparison on its first part).
     progress : callable, optional
         ``progress(text)`` after each stage of the fit.
 
@@ -325,7 +361,8 @@ class GeneralizedPI:
                  rate_channel: bool = False, drift: bool = False,
                  path_memory_v=DEFAULT_PATH_MEMORY_V, output_taus_s=(),
                  direction_memory_v=DEFAULT_DIRECTION_MEMORY_V, direction_channels: int = 3,
-                 start_tau_factors=INITIAL_TAU_FACTORS, progress=None):
+                 start_tau_factors=INITIAL_TAU_FACTORS, warm_start: bool = False,
+                 progress=None):
         self.memory_taus_s = tuple(float(t) for t in memory_taus_s)
         self.play_channels = play_channels
         self.threshold_shares = tuple(float(s) for s in threshold_shares)
@@ -346,6 +383,7 @@ class GeneralizedPI:
         self.direction_memory_v = tuple(float(t) for t in direction_memory_v)
         self.direction_channels = int(direction_channels)
         self.start_tau_factors = tuple(float(f) for f in start_tau_factors)
+        self.warm_start = bool(warm_start)
         self.progress = progress
         self.weights_ = None
         self.neutral_output_stage()
@@ -441,6 +479,8 @@ class GeneralizedPI:
             raise ValueError("u is constant; a hysteresis model needs a varying input")
         t0 = time.perf_counter()
         span_s = u.size * self.dt_s
+        if self.warm_start and self.weights_ is not None:
+            return self._fit_on(u, y, span_s, t0)
         self.memory_taus_s_ = tuple(t for t in self.memory_taus_s
                                     if t * MIN_SPANS_PER_TAU <= span_s and t > self.dt_s)
         n_play = min(int(self.play_channels), 1 + len(self.memory_taus_s_))
@@ -455,17 +495,7 @@ class GeneralizedPI:
         else:
             delays = [int(round(self.delay_s / self.dt_s))]
         self.neutral_output_stage()
-        fits = []
-        for d in delays:
-            self.delay_samples_ = d
-            x, cv = self._fit_at_delay(u, y, span_s)
-            fits.append((min(cv.rmse), d, x, cv, self.feature_mean_, self.feature_scale_,
-                         self.knots_))
-            self._say(f"delay {d} samples: CV free-run RMSE {min(cv.rmse):.4g} "
-                      f"({time.perf_counter() - t0:.1f} s)")
-        self.delay_scores_ = tuple((f[1], f[0]) for f in fits)
-        (_, self.delay_samples_, x, self.cv_, self.feature_mean_, self.feature_scale_,
-         self.knots_) = min(fits, key=lambda f: f[0])
+        x = self._fit_delays(u, y, span_s, delays, t0)
         if self.cv_.alpha != self.alphas[0]:
             _, bounds = self._initial_theta(u, span_s)
             x = self._joint_fit(u, y, x, bounds, self.cv_.alpha, max(5, self.max_nfev // 3))
@@ -474,9 +504,59 @@ class GeneralizedPI:
         self.fit_seconds_ = time.perf_counter() - t0
         return self
 
-    def _fit_at_delay(self, u, y, span_s: float):
-        """The joint fit at ``delay_samples_`` and the smallest ridge weight, and the blocked
-        CV of the ridge weight around it; sets the feature scaling and the map's knots."""
+    def _fit_on(self, u, y, span_s: float, t0: float) -> GeneralizedPI:
+        """Warm start: the continuous parameters fitted on from the learned ones, the ridge
+        weight kept unless the blocked CV on this record prefers another."""
+        _, bounds = self._initial_theta(u, span_s)
+        nfev = max(5, self.max_nfev // 3)
+        alpha = self.cv_.alpha
+        x = self._joint_fit(u, y, self._packed(), bounds, alpha, nfev)
+        self.cv_ = self._cross_validate(u, y, x)
+        if self.cv_.alpha != alpha:
+            x = self._joint_fit(u, y, x, bounds, self.cv_.alpha, nfev)
+        self._unpack(x)
+        self._say(f"fitted on from the learned parameters: CV free-run RMSE "
+                  f"{min(self.cv_.rmse):.4g} ({time.perf_counter() - t0:.1f} s)")
+        self.train_rmse_ = float(np.sqrt(np.mean((self.simulate(u) - y) ** 2)))
+        self.fit_seconds_ = time.perf_counter() - t0
+        return self
+
+    def _packed(self) -> np.ndarray:
+        """The learned parameters as the joint fit's vector (the inverse of ``_unpack``)."""
+        drift = ([self.drift_gain_per_s_, self.drift_offset_mm_per_s_] if self.drift else [])
+        return np.concatenate([self._theta, self.weights_, self.map_coef_, drift,
+                               self.output_coef_])
+
+    def _fit_delays(self, u, y, span_s: float, delays: list[int], t0: float) -> np.ndarray:
+        """The joint fit at the delay of lowest blocked-CV free-run error. Several delays are
+        compared after :data:`DELAY_SCREEN_SHARE` of ``max_nfev`` each (the same budget, so
+        neither is favoured) and only the better one gets the rest: the delays differ in the
+        input's timing, which the first iterations settle, not in the fine shape."""
+        screen = (max(5, int(self.max_nfev * DELAY_SCREEN_SHARE)) if len(delays) > 1
+                  else self.max_nfev)
+        fits = []
+        for d in delays:
+            self.delay_samples_ = d
+            x, cv = self._fit_at_delay(u, y, span_s, screen)
+            fits.append((min(cv.rmse), d, x, cv, self.feature_mean_, self.feature_scale_,
+                         self.knots_))
+            self._say(f"delay {d} samples: CV free-run RMSE {min(cv.rmse):.4g} "
+                      f"({time.perf_counter() - t0:.1f} s)")
+        self.delay_scores_ = tuple((f[1], f[0]) for f in fits)
+        (_, self.delay_samples_, x, self.cv_, self.feature_mean_, self.feature_scale_,
+         self.knots_) = min(fits, key=lambda f: f[0])
+        if screen < self.max_nfev:
+            _, bounds = self._initial_theta(u, span_s)
+            x = self._joint_fit(u, y, x, bounds, self.alphas[0], self.max_nfev - screen)
+            self.cv_ = self._cross_validate(u, y, x)
+            self._say(f"delay {self.delay_samples_} samples kept, fitted on: CV free-run "
+                      f"RMSE {min(self.cv_.rmse):.4g} ({time.perf_counter() - t0:.1f} s)")
+        return x
+
+    def _fit_at_delay(self, u, y, span_s: float, max_nfev: int):
+        """The joint fit at ``delay_samples_`` and the smallest ridge weight (at most
+        ``max_nfev`` iterations), and the blocked CV of the ridge weight around it; sets the
+        feature scaling and the map's knots."""
         theta0, bounds = self._initial_theta(u, span_s)
         _, theta0, self.feature_mean_, self.feature_scale_, w0, self.knots_ = \
             self._best_start(u, y, theta0, bounds)
@@ -484,7 +564,7 @@ class GeneralizedPI:
                          + len(self.output_taus_s))
         coef0[0] = 1.0
         x = self._joint_fit(u, y, np.concatenate([theta0, w0, coef0]), bounds,
-                            self.alphas[0])
+                            self.alphas[0], max_nfev)
         return x, self._cross_validate(u, y, x)
 
     def _best_start(self, u, y, theta0: np.ndarray, bounds):
@@ -688,7 +768,8 @@ class GeneralizedPI:
                 "output_taus_s": list(self.output_taus_s),
                 "direction_memory_v": list(self.direction_memory_v),
                 "direction_channels": self.direction_channels,
-                "start_tau_factors": list(self.start_tau_factors)}
+                "start_tau_factors": list(self.start_tau_factors),
+                "warm_start": self.warm_start}
 
 
 class GpiStepper:

@@ -46,6 +46,21 @@ def test_a_transport_delay_is_kept_only_where_the_free_run_cv_wants_it(rig_model
     assert GeneralizedPI().fit(u, duhem_plant(u, 6)).delay_samples_ == 4
 
 
+def test_warm_start_keeps_the_structure_and_fits_on_over_the_longer_record():
+    """The comparison's refit: a model fitted on the first 70 % goes on over the whole
+    record with its delay, scaling and knots, and fits the whole at least as well."""
+    _, u = mixed(120.0, 100.0, 3.0, (0.02, 0.8), seed=3)
+    y = IpmcPlant(seed=3).run(u).y_mm
+    cut = int(0.7 * u.size)
+    m = GeneralizedPI(max_nfev=20).fit(u[:cut], y[:cut])
+    first = _rmse(m.simulate(u), y), m.delay_samples_, m.knots_.copy(), m.weights_.copy()
+    m.warm_start = True
+    m.fit(u, y)
+    assert m.delay_samples_ == first[1] and np.array_equal(m.knots_, first[2])
+    assert not np.array_equal(m.weights_, first[3])   # fitted on, not kept
+    assert _rmse(m.simulate(u), y) <= 1.01 * first[0]
+
+
 def test_free_run_on_another_input_is_near_the_noise_floor(rig_model):
     _, u = random_sine(60.0, 100.0, 3.0, band_hz=(0.02, 0.8), seed=2)
     y = IpmcPlant(seed=2).run(u).y_mm
@@ -214,6 +229,22 @@ def test_travel_bank_is_the_recursion_and_still_while_the_input_holds():
         assert np.allclose(out[k], x, atol=1e-12)
     assert np.allclose(last, x)
     assert np.allclose(out[301:], out[301])  # a hold: no travel, no change
+
+
+@pytest.mark.parametrize("n", [1, 63, 64, 65, 1000])
+def test_play_bank_is_the_step_by_step_play_from_a_state(n):
+    """The blocked scan gives exactly what N clip steps give, across block edges."""
+    from ipmc_model.hysteresis import play_bank
+
+    rng = np.random.default_rng(n)
+    X = np.cumsum(rng.normal(0, 0.2, (n, 3)), axis=0)
+    r = np.tile([0.0, 0.3, 1.0], (3, 1))
+    w = rng.normal(0, 0.5, r.shape)
+    out, last = play_bank(X, r, state=w)
+    for k in range(n):
+        w = np.clip(w, X[k][:, None] - r, X[k][:, None] + r)
+        assert np.array_equal(out[k], w.ravel()), k
+    assert np.array_equal(last, w)
 
 
 def test_direction_bank_is_the_recursion_per_channel_and_still_while_they_hold():
