@@ -371,14 +371,12 @@ def _identify(args, rec, u, y, meta: dict):
         meta["selection"] = sel.as_dict()
         args.model = sel.chosen
         print(f"refitting {sel.chosen} on the whole record", file=sys.stderr, flush=True)
+        return _report_family(sel.refit(u, y, dt_s, _stage))
     if args.model == "gpi":
         _check_gpi_args(args)
         print("fitting a GPI model (rate-dependent generalised Prandtl-Ishlinskii)",
               file=sys.stderr, flush=True)
-        model = FAMILIES["gpi"].fit(u, y, dt_s, _stage)
-        print(f"GPI: charging tau {model.charge_tau_s_:.3g} s, ion-current limit "
-              f"{model.slew_v_per_s_:.3g} V/s, ridge alpha {model.cv_.alpha:.3g} "
-              f"({model.cv_.n_folds}-fold blocked free-run CV: {min(model.cv_.rmse):.4f} mm)")
+        model = _report_family(FAMILIES["gpi"].fit(u, y, dt_s, _stage))
         return model.inverse() if args.inverse else model
     if args.model == "pi":
         if args.inverse:
@@ -393,6 +391,15 @@ def _identify(args, rec, u, y, meta: dict):
     if args.input_memory_taus is not None or not args.raw_voltage:
         return _identify_channel_model(args, u, y, dt_s, meta)
     return _identify_narx(args, rec, u, y, meta)
+
+
+def _report_family(model):
+    """Print what a GPI fit found; any model is returned as it is."""
+    if isinstance(model, GeneralizedPI):
+        print(f"GPI: charging tau {model.charge_tau_s_:.3g} s, ion-current limit "
+              f"{model.slew_v_per_s_:.3g} V/s, ridge alpha {model.cv_.alpha:.3g} "
+              f"({model.cv_.n_folds}-fold blocked free-run CV: {min(model.cv_.rmse):.4f} mm)")
+    return model
 
 
 #: Options that belong to one family: refused without --model, not ignored.

@@ -39,6 +39,11 @@ class Family:
     def fit(self, u: np.ndarray, y: np.ndarray, dt_s: float, progress=None):
         raise NotImplementedError
 
+    def refit(self, model, u: np.ndarray, y: np.ndarray, dt_s: float, progress=None):
+        """The whole record's model, given ``model`` fitted on its first part: a fresh fit
+        unless the family can go on from ``model``."""
+        return self.fit(u, y, dt_s, progress)
+
 
 class GpiFamily(Family):
     name = "gpi"
@@ -49,6 +54,14 @@ class GpiFamily(Family):
 
     def fit(self, u, y, dt_s, progress=None):
         return GeneralizedPI(dt_s=dt_s, progress=progress).fit(u, y)
+
+    def refit(self, model, u, y, dt_s, progress=None):
+        # The structure the first part chose (delay, scaling, knots) is kept; the parameters
+        # go on from the first part's: a third of the iterations of a fresh fit.
+        model.progress, model.warm_start = progress, True
+        model.fit(u, y)
+        model.warm_start = False
+        return model
 
 
 class PiFamily(Family):
@@ -75,6 +88,7 @@ class FamilyScore:
     fit_rmse_mm: float
     seconds: float
     error: str = ""
+    model: object = field(default=None, repr=False, compare=False)
 
     def as_dict(self) -> dict:
         return {"family": self.name, "description": self.description,
@@ -91,6 +105,11 @@ class Selection:
     fit_samples: int
     held_out_samples: int
     chosen: str = field(default="")
+
+    def refit(self, u, y, dt_s: float, progress=None):
+        """The chosen family's model on the whole record (u V, y mm)."""
+        row = next(r for r in self.rows if r.name == self.chosen)
+        return FAMILIES[self.chosen].refit(row.model, u, y, dt_s, progress)
 
     def as_dict(self) -> dict:
         return {"chosen": self.chosen, "fit_samples": self.fit_samples,
@@ -125,6 +144,7 @@ def compare_families(u, y, dt_s: float, names=None, progress=None) -> Selection:
     for name in names or FAMILIES:
         fam = FAMILIES[name]
         t0 = time.perf_counter()
+        m = None
         try:
             m = fam.fit(u[:cut], y[:cut], dt_s, progress)
             ys = m.simulate(u)
@@ -135,7 +155,7 @@ def compare_families(u, y, dt_s: float, names=None, progress=None) -> Selection:
             held = fit = math.inf
             err = str(exc)
         rows.append(FamilyScore(name, fam.describe(), held if not err else math.inf, fit,
-                                time.perf_counter() - t0, err))
+                                time.perf_counter() - t0, err, m))
     ok = [r for r in rows if not r.error]
     if not ok:
         raise ValueError("no model family could be fitted on this record: "
