@@ -7,6 +7,10 @@ VENV := .venv
 PY := $(VENV)/bin/python
 PKGS := ros2_ws/src/ipmc_driver ros2_ws/src/ipmc_model ros2_ws/src/ipmc_control
 STAMP := $(VENV)/.installed
+# One BLAS thread per process (as the ipmc command sets): the tests, benchmarks and the demo
+# run fits beside node processes, and OpenBLAS threads that spin on a busy core slow a fit
+# several times over.
+export OPENBLAS_NUM_THREADS ?= 1
 
 .PHONY: demo test setup lint bench clean
 
