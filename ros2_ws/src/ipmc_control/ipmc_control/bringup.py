@@ -379,7 +379,7 @@ class GraphRun:
 
     #: Stop order: the commanders first (the excitation's and controller's last command is
     #: 0 V), then the plant or driver, the recorder last (it keeps the final samples).
-    STOP_ORDER = ["excitation", "reference", "controller", "sim_plant", "driver"]
+    STOP_ORDER = ["excitation", "controller", "reference", "sim_plant", "driver"]
 
     def __init__(self, specs: list[NodeSpec], log_dir: Path, *, rig: bool,
                  total_samples: int | None = None) -> None:
@@ -390,6 +390,7 @@ class GraphRun:
         self.stats = RunStats(started_s=time.monotonic())
         self.tails: dict = {}
         self.elapsed_s = 0.0
+        self.until_ns: int | None = None
 
     def run(self, stop: dict, seconds: float | None) -> int:
         """Run until the end (class doc); 0, or 1 when a node failed."""
@@ -418,6 +419,8 @@ class GraphRun:
                 if now >= next_progress_s and code is None:
                     print(self.stats.progress_line(now, self.total_samples), flush=True)
                     next_progress_s += PROGRESS_S
+            # the last sample of the running loop: the summary's tracking error ends there
+            self.until_ns = max(self.stats.displacement_mm, default=None)
             took = graph.stop_all(order=self.STOP_ORDER)
             self.elapsed_s = time.monotonic() - t0
         if monitor is not None:
@@ -465,7 +468,8 @@ class GraphRun:
         notes = []
         if bag is not None:
             try:
-                figures = bag_figures(bag, with_reference=self.total_samples is None)
+                figures = bag_figures(bag, with_reference=self.total_samples is None,
+                                      until_ns=self.until_ns)
             except (ValueError, OSError) as exc:
                 notes.append(f"the bag could not be summarised: {exc}")
         return notes + summary_lines(self.stats, elapsed_s=self.elapsed_s,

@@ -167,10 +167,13 @@ def summary_lines(stats: RunStats, *, elapsed_s: float, log_dir: Path, bag: Path
     return lines
 
 
-def bag_figures(bag: str | Path, *, with_reference: bool) -> dict:
+def bag_figures(bag: str | Path, *, with_reference: bool, until_ns: int | None = None
+                ) -> dict:
     """``samples``, ``sample_rate_hz`` (from the stamps) and ``rmse`` (with the reference)
     of a bag's ``/ipmc/displacement`` (and ``/ipmc/reference``), as :func:`summary_lines`
-    takes them. Raises ``ValueError`` for a bag that cannot be read."""
+    takes them; the RMSE covers the samples stamped up to ``until_ns`` (the loop's last
+    sample before the nodes were stopped: a plant that outlives its controller holds the
+    last command). Raises ``ValueError`` for a bag that cannot be read."""
     from ipmc_driver.dataio import read_stamped_series
 
     point = "geometry_msgs/msg/PointStamped"
@@ -182,6 +185,8 @@ def bag_figures(bag: str | Path, *, with_reference: bool) -> dict:
     span_s = (max(y) - min(y)) * 1e-9 if len(y) > 1 else 0.0
     rmse = None
     if with_reference:
-        rmse = tracking_rmse_mm({k: v * 1e3 for k, v in series["/ipmc/reference"].items()}, y)
+        closed = {k: v for k, v in y.items() if until_ns is None or k <= until_ns}
+        rmse = tracking_rmse_mm({k: v * 1e3 for k, v in series["/ipmc/reference"].items()},
+                                closed)
     return {"samples": len(y), "sample_rate_hz": (len(y) - 1) / span_s if span_s else 0.0,
             "rmse": rmse}
