@@ -82,29 +82,47 @@ def reference_span_mm(ref: Reference, kind: str, rate_hz: float = 100.0) -> tupl
 
 @lru_cache(maxsize=4)
 def plant_reach_mm(held: bool, rate_hz: float = 100.0) -> tuple[float, float]:
-    """What +-3 V reaches on the simulated IPMC (default plant parameters), mm: where a
-    ``SETTLE_S`` hold settles (``held``), else the peaks of its swing."""
+    """What +-3 V reaches on the simulated IPMC (default plant parameters), mm
+    (:func:`voltage_reach_mm`)."""
     from ipmc_driver.plant import IpmcPlant
 
-    ends = []
-    for v in (-LIMIT_V, LIMIT_V):
-        y = IpmcPlant(seed=0, dt_s=1.0 / rate_hz).run(np.full(int(SETTLE_S * rate_hz), v)).y_mm
-        ends.append(float(np.median(y[-int(rate_hz):])) if held else float(
-            np.min(y) if v < 0 else np.max(y)))
-    return ends[0], ends[1]
+    return voltage_reach_mm(lambda u: IpmcPlant(seed=0, dt_s=1.0 / rate_hz).run(u).y_mm,
+                            rate_hz, held)
 
 
-def model_reach_mm(model_path: str | Path, held: bool) -> tuple[float, float] | None:
-    """The displacements (mm) the inverse feedforward in ``model_path`` was identified on
-    (settled ones for a hold); None when the file does not tell (a forward model's
+def model_reach_mm(model_path: str | Path, held: bool
+                   ) -> tuple[tuple[float, float], str] | None:
+    """What the feedforward in ``model_path`` can be asked for (mm), and how the range was
+    found: an inverse LSSVM-NARX's displacements it was identified on (settled ones for a
+    hold); an inverse of a hysteresis model (GPI), what its forward model says +-3 V reach
+    (:func:`voltage_reach_mm`). None when the file does not tell (a forward model's
     inversion, an unreadable file: model_server says why)."""
     from ipmc_model.effects import load_any_model
     from ipmc_model.narx import reach_mm
 
     try:
-        return reach_mm(load_any_model(model_path), held=held)
+        feedforward = load_any_model(model_path)
     except (ValueError, OSError):
         return None
+    span = reach_mm(feedforward, held=held)
+    if span is not None:
+        return span, "the model was identified on"
+    forward = getattr(getattr(feedforward, "inverse", feedforward), "model", None)
+    if forward is not None and hasattr(forward, "simulate") and hasattr(forward, "dt_s"):
+        return voltage_reach_mm(forward.simulate, 1.0 / forward.dt_s, held), \
+            f"the model reaches at +-{LIMIT_V:g} V"
+    return None
+
+
+def voltage_reach_mm(simulate, rate_hz: float, held: bool) -> tuple[float, float]:
+    """Where +-3 V held ``SETTLE_S`` take the output of ``simulate`` (V -> mm, from rest):
+    the settled ends (``held``; the median of the last second) or the extreme swing."""
+    ends = []
+    for v in (-LIMIT_V, LIMIT_V):
+        y = np.asarray(simulate(np.full(int(SETTLE_S * rate_hz), v)), dtype=float)
+        ends.append(float(np.median(y[-int(rate_hz):])) if held
+                    else float(np.min(y) if v < 0 else np.max(y)))
+    return ends[0], ends[1]
 
 
 def check_reach(span_mm: tuple[float, float], kind: str, *, plant: bool,
@@ -123,10 +141,10 @@ def check_reach(span_mm: tuple[float, float], kind: str, *, plant: bool,
             raise ReachError(
                 f"the reference asks for {asks}, but the simulated IPMC {how} {low:.2f} and "
                 f"{high:.2f} mm at +-{LIMIT_V:g} V; set {SETTING[kind]} within that")
-    reach = model_reach_mm(model, held) if model else None
-    if reach is not None and (out_of_reach(lo, reach) or out_of_reach(hi, reach)):
+    found = model_reach_mm(model, held) if model else None
+    if found is not None and (out_of_reach(lo, found[0]) or out_of_reach(hi, found[0])):
+        (low, high), how = found
         raise ReachError(
-            f"the reference asks for {asks}, beyond the {reach[0]:.2f}..{reach[1]:.2f} mm "
-            f"{'held ' if held else ''}the model {model} was identified on (its inverse would "
-            f"extrapolate); record an excitation that covers it, or set {SETTING[kind]} "
-            "within it")
+            f"the reference asks for {asks}, beyond the {low:.2f}..{high:.2f} mm "
+            f"{'held ' if held else ''}{how} ({model}); record an excitation that covers it, "
+            f"or set {SETTING[kind]} within it")

@@ -61,7 +61,22 @@ def test_a_reference_beyond_the_models_range_is_refused(tmp_path):
     path = save_model(model.fit(run.u_v, run.y_mm), tmp_path / "inv.json")
     lo, hi = model.identified_range_mm
     assert hi < 2.5
-    with pytest.raises(ReachError, match="beyond the .* mm the model .* was identified on"):
+    with pytest.raises(ReachError, match=r"beyond the .* mm the model was identified on \("):
         check_reference("sine", {"amplitude_mm": 2.5}, sim=True, model=str(path))
     small = 0.5 * min(-lo, hi)
     assert check_reference("sine", {"amplitude_mm": small}, sim=True, model=str(path))
+
+
+def test_voltage_reach_takes_the_settled_ends_for_holds_and_the_swing_otherwise():
+    """A response that overshoots to 1.5 x its gain and relaxes back to 1 x (back-relaxation):
+    a hold reaches the settled 3 mm per 3 V, a moving reference up to the 4.5 mm peak."""
+    from ipmc_control.reach import voltage_reach_mm
+
+    def simulate(u):
+        t = np.arange(u.size) * 0.01
+        return u * (1.0 + 0.5 * (1.0 - np.exp(-t / 0.2)) * np.exp(-t / 2.0) * 2.5)
+
+    low, high = voltage_reach_mm(simulate, 100.0, held=True)
+    assert low == pytest.approx(-3.0, abs=1e-3) and high == pytest.approx(3.0, abs=1e-3)
+    low, high = voltage_reach_mm(simulate, 100.0, held=False)
+    assert high > 4.0 and low == pytest.approx(-high)
