@@ -207,3 +207,24 @@ def test_a_failed_reload_keeps_the_models_in_use(models, tmp_path):
     status = model_status(service)
     assert status.level == WARN and "last reload failed" in status.message
     assert service.serves_prediction and service.serves_feedforward
+
+
+def test_a_model_gone_stale_is_told_once_with_the_commands_that_find_what_changed(models):
+    """The monitor's turn to stale is a note the node logs (and bringup's console shows)
+    naming the diagnosis of the recorded run with the served model."""
+    _, forward_file, _, _, _ = models
+    service = _service(models)
+    rng = np.random.default_rng(0)
+    stale_at = None
+    for k in range(40_000):
+        stamp = k * 10 * MS
+        y_free, _ = service.predict(stamp, 0.5 * math.sin(k / 50))
+        drift_mm = 0.0 if k < 15_000 else 1e-5 * (k - 15_000)   # the rig starts to drift
+        service.measure(stamp, y_free + rng.normal(0, 0.005) + drift_mm)
+        if stale_at is None and any(kind == "stale" for kind, _ in service.notes):
+            stale_at = k
+    stale = [text for kind, text in service.notes if kind == "stale"]
+    assert stale_at is not None and stale_at > 15_000, stale_at
+    assert len(stale) == 1, stale   # told at the turn, not at every sample after it
+    assert stale[0].startswith("model stale: ")
+    assert f"ipmc diagnose --data BAG --model {forward_file}" in stale[0]

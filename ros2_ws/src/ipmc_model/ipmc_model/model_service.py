@@ -599,8 +599,23 @@ class ModelService:
             self._e_one.append(e_one)
         else:
             e_one = math.nan  # its partner came after a newer voltage: no one-step residual
+        was_stale = self.monitor.status.level == 2
         self.monitor.update(e_one if self.monitor_residual == "one_step" else e_free)
+        if self.monitor.status.level == 2 and not was_stale:
+            self.notes.append(("stale", stale_advice(
+                self.monitor.status.message,
+                self.models.model_file or self.models.inverse_model_file)))
         return e_free
+
+
+def stale_advice(message: str, model_file: str) -> str:
+    """The staleness monitor's verdict and the commands that find what changed: diagnose the
+    recorded run with the served model given, then play the experiment it proposes."""
+    model = model_file or "MODEL"
+    return (f"{message}. Find what changed: ipmc diagnose --data BAG --model {model} "
+            f"--report DIR on this run's record (ipmc bringup --record BAG), then ipmc bringup "
+            f"--experiment DIR/next_experiment.json --record BAG2 if it proposes one, or ipmc "
+            f"investigate --rig PORT --report DIR to run the whole loop")
 
 
 def _remember(memory: OrderedDict, key, value) -> None:
