@@ -33,6 +33,7 @@ setup(
             "track = ipmc_control.track_cli:main",
             "bringup = ipmc_control.bringup:main",
             "demo = ipmc_control.demo:main",
+            "investigate = ipmc_control.investigate:main",
         ],
     },
 )
