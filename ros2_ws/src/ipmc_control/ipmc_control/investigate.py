@@ -1,0 +1,520 @@
+"""``ipmc investigate``: the residual loop that designs and runs its own deciding experiment.
+
+    ipmc investigate --sim|--rig PORT [--plant-effect NAME ...]
+        [--first-input random-sine|steps|mixed] [--budget-min M] [--seed N] --report DIR
+
+Round 1 plays a first excitation, records it and diagnoses the record (``ipmc diagnose``'s
+procedure). When the diagnosis leaves an effect undecided for lack of the input that shows it
+(creep without input holds, a delay without steps, a dead zone without slow crossings of 0 V),
+it proposes the experiment that decides it; the next round plays that experiment, records it
+and diagnoses the new record; and so on until nothing is undecided, an experiment left its
+effects as undecided as before, or the next experiment would overrun the budget of recorded
+minutes.
+
+Each new record is diagnosed on its own, from the diagnosis's core model refitted on its fit
+part: the experiment repeats the probes in its held-out part after an identification input,
+so that record alone judges every candidate on the excitation that shows it, whereas blocks
+fitted around the earlier record's frozen model would be judged against that model's errors.
+
+The record comes from a runner: the simulated IPMC in this process (``--in-process``: fast),
+the simulated plant in the lock-step ROS graph (``--sim``: ``ipmc bringup --sim --lockstep
+--experiment FILE --record BAG``), or the rig through the driver (``--rig PORT``). Ctrl-C stops
+the running graph (its last command is 0 V), keeps the records made so far readable and
+writes the report of the finished rounds.
+
+Files in DIR: ``summary.json``, ``report.md`` and per round ``round_N/`` with the input
+played (``input.csv`` or ``experiment.json``), the record (``record.csv`` or ``bag/``) and the
+diagnosis's report (``diagnosis/``: its summary, report, models before and after, and the next
+experiment). Progress goes to stderr. No ROS import here: the graph runs as a command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+#: Length of the first excitation (s): the diagnosis's fit part (70 %) then spans 84 s, three
+#: time constants of a 12 s creep, the slowest relaxation it can then fit as a rival and size
+#: the deciding holds by.
+FIRST_SECONDS = 120.0
+#: Default budget of recorded minutes for the whole investigation.
+BUDGET_MIN = 20.0
+#: At most this many rounds (records), whatever the budget.
+MAX_ROUNDS = 6
+#: The graph's sampling rate (ipmc bringup runs the plant, the driver and the excitation at
+#: 100 Hz); the in-process plant may run at another.
+GRAPH_RATE_HZ = 100.0
+#: Seconds a stopped graph may take to exit after SIGINT before it is killed.
+STOP_GRACE_S = 30.0
+
+
+@dataclass(frozen=True)
+class InputPart:
+    """A stretch of an input and why it is there."""
+
+    name: str
+    effect: str
+    start_s: float
+    duration_s: float
+    reason: str
+
+
+@dataclass(frozen=True)
+class PlannedInput:
+    """What one round plays: voltages ``u_v`` (V) at ``rate_hz``, the file that holds them (the
+    graph plays it), what it is, its parts and the effects it is designed to decide."""
+
+    u_v: np.ndarray
+    rate_hz: float
+    path: Path
+    label: str
+    parts: tuple[InputPart, ...]
+    decides: tuple[str, ...] = ()
+
+    @property
+    def duration_s(self) -> float:
+        return self.u_v.size / self.rate_hz
+
+
+@dataclass(frozen=True)
+class Recorded:
+    """A record: time (s), applied voltage (V), tip (mm) and where it was written."""
+
+    t_s: np.ndarray
+    u_v: np.ndarray
+    y_mm: np.ndarray
+    path: Path
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.u_v.size * np.median(np.diff(self.t_s)))
+
+
+@dataclass(frozen=True)
+class Verdicts:
+    """What the diagnosis of one record decided, as the loop uses it."""
+
+    outcomes: dict[str, str]
+    reasons: dict[str, str]
+    params: dict[str, dict]
+    effects_found: tuple[str, ...]
+    rmse_before_mm: float
+    rmse_after_mm: float
+    noise_floor_mm: float
+    next_experiment: object | None
+    report_dir: Path
+    model_before: Path | None = None
+    model_after: Path | None = None
+
+    def undecided(self) -> tuple[str, ...]:
+        """The effects the next experiment is designed to decide."""
+        x = self.next_experiment
+        return tuple(x.decides) if x is not None else ()
+
+
+class Runner(Protocol):
+    """Plays an input on a plant or rig and returns the record."""
+
+    rate_hz: float
+
+    def describe(self) -> str: ...
+
+    def record(self, plan: PlannedInput, out_dir: Path) -> Recorded: ...
+
+
+Diagnoser = Callable[[Recorded, Path], Verdicts]
+Progress = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class InvestigationRound:
+    """One round: what was undecided before it, what it played, the record, the verdicts."""
+
+    number: int
+    undecided: tuple[str, ...]
+    played: PlannedInput
+    record: Recorded
+    verdicts: Verdicts
+    wall_s: float
+
+    @property
+    def decided(self) -> dict[str, str]:
+        """Outcome (accepted / rejected) of each effect this round was played to decide (the
+        first round: every effect its record could test)."""
+        want = self.undecided or tuple(self.verdicts.outcomes)
+        return {n: o for n, o in self.verdicts.outcomes.items()
+                if n in want and o != "not testable"}
+
+
+@dataclass
+class Investigation:
+    """The whole investigation: its rounds, why it stopped, its budget."""
+
+    runner: str
+    budget_s: float
+    rounds: list[InvestigationRound] = field(default_factory=list)
+    stopped_because: str = ""
+    interrupted: bool = False
+    error: str = ""
+    wall_s: float = 0.0
+
+    @property
+    def recorded_s(self) -> float:
+        return float(sum(r.record.duration_s for r in self.rounds))
+
+    @property
+    def effects_found(self) -> list[str]:
+        """Effects whose latest verdict on a record that could test them is 'accepted'."""
+        latest: dict[str, str] = {}
+        for rnd in self.rounds:
+            for name, outcome in rnd.verdicts.outcomes.items():
+                if outcome != "not testable":
+                    latest[name] = outcome
+        return [n for n, o in latest.items() if o == "accepted"]
+
+    @property
+    def undecided(self) -> tuple[str, ...]:
+        return self.rounds[-1].verdicts.undecided() if self.rounds else ()
+
+    @property
+    def rmse_before_mm(self) -> float:
+        """The first round's starting model on the first record's held-out part."""
+        return self.rounds[0].verdicts.rmse_before_mm if self.rounds else float("nan")
+
+    @property
+    def rmse_after_mm(self) -> float:
+        """The last model (every accepted effect) on the last record's held-out part."""
+        return self.rounds[-1].verdicts.rmse_after_mm if self.rounds else float("nan")
+
+
+# -- inputs ---------------------------------------------------------------------------------
+def first_input(kind: str, *, seconds: float, rate_hz: float, amplitude_v: float, seed: int,
+                out_dir: Path) -> PlannedInput:
+    """The first excitation (``ipmc bringup --excite KIND``'s voltages), written as
+    ``out_dir/input.csv`` (t, u)."""
+    from .excitation import make_excitation, save_csv
+
+    exc = make_excitation(kind, amplitude_v=amplitude_v, seconds=seconds, rate_hz=rate_hz,
+                          seed=seed)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = save_csv(exc, out_dir / "input.csv")
+    why = {"random-sine": "a random sum of sines up to 0.8 Hz: the hysteresis loops of "
+                          "tracking, no input holds",
+           "steps": "held levels across the range: settling after each step",
+           "mixed": "random sines, slow sines and short levels, then input holds at levels "
+                    "spanning the range"}[kind]
+    part = InputPart(f"first input: {kind}", "", 0.0, exc.duration_s,
+                     f"{why}; +-{amplitude_v:g} V")
+    return PlannedInput(exc.u_v, exc.rate_hz, path, f"first input: {kind}, "
+                        f"{exc.duration_s:.0f} s", (part,))
+
+
+def experiment_input(experiment, out_dir: Path, after_round: int) -> PlannedInput:
+    """The diagnosis's next experiment, written as ``out_dir/experiment.json`` (the format
+    ``ipmc bringup --experiment`` plays)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "experiment.json"
+    path.write_text(json.dumps(experiment.as_dict()) + "\n")
+    parts = tuple(InputPart(p.name, p.effect, p.start_s, p.duration_s, p.reason)
+                  for p in experiment.parts)
+    return PlannedInput(np.asarray(experiment.u_v, dtype=float), float(experiment.rate_hz),
+                        path, f"the experiment round {after_round} proposed, "
+                        f"{experiment.duration_s:.0f} s", parts, tuple(experiment.decides))
+
+
+# -- the loop -------------------------------------------------------------------------------
+def stop_reason(inv: Investigation, max_rounds: int) -> str | None:
+    """Why no further round is played, or None if the next experiment is."""
+    last = inv.rounds[-1]
+    nxt = last.verdicts.next_experiment
+    if nxt is None:
+        return "nothing undecided: every candidate effect the records can show was judged"
+    if last.undecided and set(last.verdicts.undecided()) >= set(last.undecided):
+        return (f"the experiment played to decide {', '.join(last.undecided)} left it "
+                "undecided: another such experiment would not decide it")
+    if len(inv.rounds) >= max_rounds:
+        return f"{max_rounds} rounds played"
+    need_s = inv.recorded_s + nxt.duration_s
+    if need_s > inv.budget_s:
+        return (f"budget: the next experiment ({nxt.duration_s:.0f} s, deciding "
+                f"{', '.join(nxt.decides)}) would bring the recorded time to "
+                f"{need_s / 60:.1f} min, beyond {inv.budget_s / 60:g} min")
+    return None
+
+
+def play_round(number: int, plan: PlannedInput, undecided: tuple[str, ...], runner: Runner,
+               diagnoser: Diagnoser, out_dir: Path, say: Progress) -> InvestigationRound:
+    """Play ``plan``, record it and diagnose the record into ``out_dir``."""
+    t0 = time.monotonic()
+    why = f" to decide {', '.join(undecided)}" if undecided else ""
+    say(f"round {number}: playing {plan.label}{why} on {runner.describe()}")
+    rec = runner.record(plan, out_dir)
+    say(f"round {number}: recorded {rec.u_v.size} samples ({rec.duration_s:.0f} s) in "
+        f"{rec.path}; diagnosing")
+    verdicts = diagnoser(rec, out_dir / "diagnosis")
+    rnd = InvestigationRound(number, undecided, plan, rec, verdicts, time.monotonic() - t0)
+    found = ", ".join(verdicts.effects_found) or "none"
+    left = ", ".join(verdicts.undecided()) or "nothing"
+    say(f"round {number}: effects found {found}; undecided {left}; held-out RMSE "
+        f"{verdicts.rmse_before_mm:.4f} -> {verdicts.rmse_after_mm:.4f} mm "
+        f"({rnd.wall_s:.0f} s)")
+    return rnd
+
+
+def investigate(runner: Runner, first: PlannedInput, diagnoser: Diagnoser, out_dir: Path, *,
+                budget_s: float, max_rounds: int = MAX_ROUNDS,
+                progress: Progress | None = None) -> Investigation:
+    """Run rounds (module doc) from the input ``first`` until nothing is undecided or the
+    budget of recorded seconds ``budget_s`` is spent; a KeyboardInterrupt ends the
+    investigation after the finished rounds (``interrupted``)."""
+    say = progress or (lambda text: None)
+    inv = Investigation(runner.describe(), float(budget_s))
+    t0 = time.monotonic()
+    plan, undecided = first, ()
+    try:
+        while True:
+            n = len(inv.rounds) + 1
+            inv.rounds.append(play_round(n, plan, undecided, runner, diagnoser,
+                                         out_dir / f"round_{n}", say))
+            why = stop_reason(inv, max_rounds)
+            if why is not None:
+                inv.stopped_because = why
+                break
+            nxt = inv.rounds[-1].verdicts.next_experiment
+            plan = experiment_input(nxt, out_dir / f"round_{n + 1}", n)
+            undecided = plan.decides
+    except KeyboardInterrupt:
+        inv.interrupted = True
+        inv.stopped_because = (f"interrupted during round {len(inv.rounds) + 1}; the records "
+                               "made so far are kept")
+    except (RuntimeError, ValueError, OSError) as exc:
+        inv.error = f"round {len(inv.rounds) + 1}: {exc}"
+        inv.stopped_because = f"error in {inv.error}"
+    inv.wall_s = time.monotonic() - t0
+    say(f"stopped: {inv.stopped_because}")
+    return inv
+
+
+# -- the diagnosis --------------------------------------------------------------------------
+def verdicts_of(d, report_dir: Path, paths: dict) -> Verdicts:
+    """The loop's view of an :class:`ipmc_model.diagnosis.Diagnosis`."""
+    results = d.candidates
+    params = {r.name: dict(r.evidence.params) for r in results
+              if r.accepted and r.evidence is not None}
+    return Verdicts(
+        outcomes={r.name: r.outcome.value for r in results},
+        reasons={r.name: r.reason for r in results}, params=params,
+        effects_found=tuple(d.effects_found), rmse_before_mm=float(d.rmse_before_mm),
+        rmse_after_mm=float(d.rmse_after_mm), noise_floor_mm=float(d.noise_floor_mm),
+        next_experiment=d.next_experiment, report_dir=report_dir,
+        model_before=Path(paths["model_before"]), model_after=Path(paths["model_after"]))
+
+
+def residual_diagnoser(candidates: list[str] | None = None,
+                       progress: Progress | None = None) -> Diagnoser:
+    """The diagnosis of ``ipmc diagnose`` (own core model; ``candidates``: default all), its
+    report written to the round's ``diagnosis/`` folder."""
+    from ipmc_model.diagnosis import diagnose
+    from ipmc_model.diagnosis.report import write_report
+
+    def run(rec: Recorded, report_dir: Path) -> Verdicts:
+        d = diagnose(rec.t_s, rec.u_v, rec.y_mm, candidates=candidates,
+                     progress=(lambda text: progress("  " + text)) if progress else None)
+        summary = write_report(d, report_dir, data_label=str(rec.path))
+        return verdicts_of(d, report_dir, summary)
+
+    return run
+
+
+# -- runners --------------------------------------------------------------------------------
+class InProcessRunner:
+    """The simulated IPMC (:class:`ipmc_driver.plant.IpmcPlant`) in this process, from rest
+    each round, its sensor noise seeded ``seed`` plus the round; writes ``record.csv``."""
+
+    def __init__(self, effects: list[str], seed: int = 0, rate_hz: float = GRAPH_RATE_HZ):
+        self.effects, self.seed, self.rate_hz = list(effects), int(seed), float(rate_hz)
+        self._runs = 0
+
+    def describe(self) -> str:
+        fx = ", ".join(self.effects) or "no optional effect"
+        return f"the simulated IPMC in process ({fx}; {self.rate_hz:g} Hz)"
+
+    def record(self, plan: PlannedInput, out_dir: Path) -> Recorded:
+        from ipmc_driver.dataio import Record, save_csv
+        from ipmc_driver.plant import IpmcPlant
+
+        if abs(plan.rate_hz - self.rate_hz) > 1e-6 * self.rate_hz:
+            raise ValueError(f"the input is sampled at {plan.rate_hz:g} Hz, the plant at "
+                             f"{self.rate_hz:g} Hz")
+        plant = IpmcPlant(effects=self.effects, seed=self.seed + self._runs,
+                          dt_s=1.0 / self.rate_hz)
+        self._runs += 1
+        run = plant.run(plan.u_v)
+        path = save_csv(Record(run.t_s, run.u_v, run.y_mm), out_dir / "record.csv")
+        return Recorded(run.t_s, run.u_v, run.y_mm, path)
+
+
+class GraphRunner:
+    """The ROS graph through ``ipmc bringup --experiment FILE --record BAG``: the simulated
+    plant in lock-step (``rig_port`` None; faster than real time) or the rig through the driver
+    on ``rig_port`` (real time); one bringup per round, its console in ``bringup.log``."""
+
+    rate_hz = GRAPH_RATE_HZ
+
+    def __init__(self, rig_port: str | None = None, effects: list[str] | None = None):
+        self.rig_port, self.effects = rig_port, list(effects or [])
+
+    def describe(self) -> str:
+        if self.rig_port:
+            return f"the rig on {self.rig_port} through the driver"
+        fx = ", ".join(self.effects) or "no optional effect"
+        return f"the simulated plant in the lock-step graph ({fx})"
+
+    def argv(self, plan: PlannedInput, bag: Path) -> list[str]:
+        """The bringup command that plays ``plan`` and records it to ``bag``."""
+        cmd = [sys.executable, "-m", "ipmc_driver.cli", "bringup"]
+        cmd += ["--rig", self.rig_port] if self.rig_port else ["--sim", "--lockstep"]
+        cmd += ["--experiment", str(plan.path), "--record", str(bag)]
+        for name in self.effects:
+            cmd += ["--plant-effect", name]
+        return cmd
+
+    def timeout_s(self, plan: PlannedInput) -> float:
+        """Wall seconds the run may take: real time on the rig, a lock-step plant at no less
+        than a quarter of it, plus the graph's start and stop."""
+        return plan.duration_s * (1.0 if self.rig_port else 4.0) + 120.0
+
+    def record(self, plan: PlannedInput, out_dir: Path) -> Recorded:
+        from ipmc_driver.dataio import load_record
+
+        out_dir.mkdir(parents=True, exist_ok=True)
+        bag = out_dir / "bag"
+        with open(out_dir / "bringup.log", "w") as log:
+            proc = subprocess.Popen(self.argv(plan, bag), stdout=log,
+                                    stderr=subprocess.STDOUT)
+            try:
+                code = proc.wait(timeout=self.timeout_s(plan))
+            except subprocess.TimeoutExpired:
+                stop_process(proc)
+                raise RuntimeError(f"ipmc bringup did not finish within "
+                                   f"{self.timeout_s(plan):.0f} s; see {log.name}") from None
+            except KeyboardInterrupt:
+                stop_process(proc)
+                raise
+        if code != 0:
+            raise RuntimeError(f"ipmc bringup exited with code {code}; see "
+                               f"{out_dir / 'bringup.log'}")
+        rec = load_record(bag)
+        return Recorded(rec.t_s - rec.t_s[0], rec.u_v, rec.y_mm, bag)
+
+
+def stop_process(proc: subprocess.Popen) -> None:
+    """SIGINT (bringup then stops its nodes, the commanders first with 0 V, the recorder
+    last), SIGKILL after :data:`STOP_GRACE_S`."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=STOP_GRACE_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+# -- the command ----------------------------------------------------------------------------
+def _parser() -> argparse.ArgumentParser:
+    from ipmc_driver.plant import EFFECTS
+
+    from .excitation import KINDS
+
+    p = argparse.ArgumentParser(
+        prog="ipmc investigate",
+        description="The residual loop end to end: play a first excitation, record it, "
+                    "diagnose it; while the diagnosis leaves an effect undecided for lack of "
+                    "the input that shows it, play the experiment it proposes, record and "
+                    "diagnose again, until nothing is undecided or the budget is spent.")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--sim", action="store_true",
+                       help="the simulated plant in the lock-step ROS graph (default)")
+    where.add_argument("--rig", metavar="PORT", help="the rig through the driver on PORT")
+    p.add_argument("--in-process", action="store_true",
+                   help="with --sim: the simulated IPMC in this process instead of the graph "
+                        "(same plant, no ROS; several times faster)")
+    p.add_argument("--plant-effect", action="append", default=[], choices=EFFECTS,
+                   metavar="NAME", help=f"simulated plant effect (repeatable): "
+                                        f"{', '.join(EFFECTS)}")
+    p.add_argument("--first-input", choices=KINDS, default="random-sine",
+                   help="the first excitation (default random-sine: no holds, no steps)")
+    p.add_argument("--first-seconds", type=float, default=FIRST_SECONDS,
+                   help=f"its length, s (default {FIRST_SECONDS:g})")
+    p.add_argument("--amplitude-v", type=float, default=3.0,
+                   help="its largest |voltage|, V (<= 3, the H-bridge's limit)")
+    p.add_argument("--budget-min", type=float, default=BUDGET_MIN,
+                   help=f"recorded minutes the investigation may spend (default {BUDGET_MIN:g})")
+    p.add_argument("--rate-hz", type=float, default=GRAPH_RATE_HZ,
+                   help=f"--in-process: the plant's sampling rate, Hz (the graph runs at "
+                        f"{GRAPH_RATE_HZ:g})")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the first excitation and of the simulated sensor noise")
+    p.add_argument("--report", required=True, metavar="DIR", help="output folder (new or empty)")
+    return p
+
+
+def runner_from(args: argparse.Namespace) -> Runner:
+    """The runner the options ask for; a ValueError in one sentence for ones that clash."""
+    if args.rig and (args.plant_effect or args.in_process):
+        raise ValueError("--plant-effect and --in-process drive the simulated plant; the rig "
+                         "(--rig) has its own physics")
+    if args.in_process:
+        return InProcessRunner(args.plant_effect, seed=args.seed, rate_hz=args.rate_hz)
+    if args.rate_hz != GRAPH_RATE_HZ:
+        raise ValueError(f"the graph samples at {GRAPH_RATE_HZ:g} Hz; --rate-hz is for "
+                         "--in-process")
+    return GraphRunner(args.rig, args.plant_effect)
+
+
+def _progress(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``ipmc investigate``; returns the exit code (130 after Ctrl-C)."""
+    from .investigate_report import check_out_dir, write_investigation
+
+    args = _parser().parse_args(argv)
+    try:
+        if not 0.0 < args.first_seconds <= 60.0 * args.budget_min:
+            raise ValueError(f"the first input ({args.first_seconds:g} s) must fit the budget "
+                             f"(--budget-min {args.budget_min:g})")
+        runner = runner_from(args)
+        out = check_out_dir(args.report)
+        first = first_input(args.first_input, seconds=args.first_seconds,
+                            rate_hz=runner.rate_hz, amplitude_v=args.amplitude_v,
+                            seed=args.seed, out_dir=out / "round_1")
+    except ValueError as exc:
+        print(f"ipmc investigate: error: {exc}", file=sys.stderr)
+        return 1
+    inv = investigate(runner, first, residual_diagnoser(progress=_progress), out,
+                      budget_s=60.0 * args.budget_min, progress=_progress)
+    summary = write_investigation(inv, out)
+    if inv.error:
+        print(f"ipmc investigate: error in {inv.error}", file=sys.stderr)
+        return 1
+    found = ", ".join(summary["effects_found"]) or "none"
+    print(f"effects found: {found}; held-out free-run RMSE {summary['rmse_before_mm']:.4f} mm "
+          f"before, {summary['rmse_after_mm']:.4f} mm after; {len(inv.rounds)} rounds, "
+          f"{inv.recorded_s / 60:.1f} min recorded; report in {out}")
+    return 130 if inv.interrupted else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,171 @@
+"""ipmc investigate: the round logic with a stand-in runner and diagnosis (fast), and the loop on
+the simulated IPMC in process (a creep hidden by a random sine; a clean plant)."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ipmc_control.excitation import load_excitation
+from ipmc_control.investigate import (
+    GraphRunner,
+    InvestigationRound,
+    PlannedInput,
+    Recorded,
+    Verdicts,
+    first_input,
+    investigate,
+    main,
+)
+from ipmc_control.investigate_report import write_investigation
+from ipmc_model.diagnosis.experiment import Experiment, ExperimentPart
+
+RATE_HZ = 50.0
+HISTORY = re.compile(r"\bsessions?\b|\bmust[- ]shows?\b|\bissue \d", re.IGNORECASE)
+
+
+class StandInRunner:
+    """Records the input with a zero tip; counts its runs."""
+
+    rate_hz = RATE_HZ
+
+    def __init__(self, interrupt_on: int | None = None):
+        self.played: list[PlannedInput] = []
+        self.interrupt_on = interrupt_on
+
+    def describe(self) -> str:
+        return "a stand-in plant"
+
+    def record(self, plan: PlannedInput, out_dir: Path) -> Recorded:
+        self.played.append(plan)
+        if len(self.played) == self.interrupt_on:
+            raise KeyboardInterrupt
+        out_dir.mkdir(parents=True, exist_ok=True)
+        t = np.arange(plan.u_v.size) / plan.rate_hz
+        return Recorded(t, plan.u_v, np.zeros_like(t), out_dir / "record.csv")
+
+
+def creep_experiment(seconds: float = 100.0) -> Experiment:
+    n = int(seconds * RATE_HZ)
+    u = np.concatenate([np.full(n // 2, 2.0), np.full(n - n // 2, -2.0)])
+    part = ExperimentPart("creep probe", "creep", 0.0, seconds, "holds of 36 s")
+    return Experiment(RATE_HZ, 0.7, u, (part,))
+
+
+def stand_in_diagnoser(script: list[tuple[dict, Experiment | None]]):
+    """Round k's diagnosis returns script[k] (outcomes, next experiment); the last repeats."""
+    calls = []
+
+    def run(rec: Recorded, report_dir: Path) -> Verdicts:
+        outcomes, nxt = script[min(len(calls), len(script) - 1)]
+        calls.append(rec)
+        found = tuple(n for n, o in outcomes.items() if o == "accepted")
+        return Verdicts(outcomes, {n: f"{n} was {o}" for n, o in outcomes.items()},
+                        {n: {"taus_s": [12.0]} for n in found}, found, 0.02,
+                        0.01 if found else 0.02, 0.005, nxt, report_dir)
+
+    return run
+
+
+def _first(tmp_path: Path) -> PlannedInput:
+    return first_input("random-sine", seconds=60.0, rate_hz=RATE_HZ, amplitude_v=3.0, seed=1,
+                       out_dir=tmp_path / "round_1")
+
+
+UNDECIDED = ({"creep": "not testable", "delay": "rejected"}, creep_experiment())
+DECIDED = ({"creep": "accepted", "delay": "rejected"}, None)
+
+
+def test_rounds_play_the_proposed_experiment_until_nothing_is_undecided(tmp_path):
+    runner = StandInRunner()
+    inv = investigate(runner, _first(tmp_path), stand_in_diagnoser([UNDECIDED, DECIDED]),
+                      tmp_path, budget_s=600.0)
+    assert [r.number for r in inv.rounds] == [1, 2]
+    first, second = inv.rounds
+    assert first.undecided == () and first.decided == {"delay": "rejected"}
+    assert second.undecided == ("creep",) and second.decided == {"creep": "accepted"}
+    np.testing.assert_array_equal(runner.played[1].u_v, creep_experiment().u_v)
+    played = load_excitation(runner.played[1].path, RATE_HZ)   # what bringup would play
+    np.testing.assert_allclose(played.u_v, creep_experiment().u_v, atol=1e-4)
+    assert inv.effects_found == ["creep"]
+    assert inv.stopped_because.startswith("nothing undecided")
+    assert inv.rmse_before_mm == 0.02 and inv.rmse_after_mm == 0.01
+
+
+def test_summary_and_report_tell_each_round(tmp_path):
+    inv = investigate(StandInRunner(), _first(tmp_path), stand_in_diagnoser([UNDECIDED, DECIDED]),
+                      tmp_path, budget_s=600.0)
+    summary = write_investigation(inv, tmp_path)
+    doc = json.loads((tmp_path / "summary.json").read_text())
+    assert doc == summary
+    assert {"effects_found", "rmse_before_mm", "rmse_after_mm", "rounds"} <= set(doc)
+    assert [set(r) >= {"undecided", "experiment", "decided"} for r in doc["rounds"]] == [True] * 2
+    assert doc["rounds"][1]["undecided"] == ["creep"]
+    assert doc["rounds"][1]["experiment"]["parts"][0]["reason"] == "holds of 36 s"
+    assert doc["rounds"][1]["decided"] == {"creep": "accepted"}
+    report = (tmp_path / "report.md").read_text()
+    assert "## Round 2" in report and "Undecided before it: creep" in report
+    assert "holds of 36 s" in report
+    assert not HISTORY.search(report + json.dumps(doc))
+
+
+def test_the_budget_stops_before_an_experiment_that_would_overrun_it(tmp_path):
+    runner = StandInRunner()
+    inv = investigate(runner, _first(tmp_path), stand_in_diagnoser([UNDECIDED]), tmp_path,
+                      budget_s=120.0)
+    assert len(runner.played) == 1
+    assert inv.stopped_because.startswith("budget") and inv.undecided == ("creep",)
+
+
+def test_an_experiment_that_leaves_its_effect_undecided_is_not_repeated(tmp_path):
+    runner = StandInRunner()
+    inv = investigate(runner, _first(tmp_path), stand_in_diagnoser([UNDECIDED]), tmp_path,
+                      budget_s=3600.0)
+    assert len(runner.played) == 2
+    assert "left it undecided" in inv.stopped_because
+
+
+def test_ctrl_c_keeps_the_finished_rounds(tmp_path):
+    inv = investigate(StandInRunner(interrupt_on=2), _first(tmp_path),
+                      stand_in_diagnoser([UNDECIDED, DECIDED]), tmp_path, budget_s=600.0)
+    assert inv.interrupted and len(inv.rounds) == 1
+    assert inv.stopped_because.startswith("interrupted during round 2")
+    assert write_investigation(inv, tmp_path)["rounds"][0]["undecided"] == []
+
+
+def test_the_graph_runner_plays_the_file_through_bringup(tmp_path):
+    plan = _first(tmp_path)
+    sim = GraphRunner(None, ["creep"]).argv(plan, tmp_path / "bag")
+    assert sim[-8:] == ["--sim", "--lockstep", "--experiment", str(plan.path), "--record",
+                        str(tmp_path / "bag"), "--plant-effect", "creep"]
+    rig = GraphRunner("/dev/pts/7").argv(plan, tmp_path / "bag")
+    assert rig[4:6] == ["--rig", "/dev/pts/7"] and "--plant-effect" not in rig
+
+
+def test_refusals_name_the_option(tmp_path, capsys):
+    assert main(["--rig", "/dev/null", "--plant-effect", "creep", "--report",
+                 str(tmp_path / "a")]) == 1
+    assert "--plant-effect" in capsys.readouterr().err
+    assert main(["--budget-min", "1", "--report", str(tmp_path / "b")]) == 1
+    assert "budget" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists()
+
+
+def test_importing_the_core_leaves_rclpy_out():
+    code = ("import sys, ipmc_control.investigate, ipmc_control.investigate_report; "
+            "assert 'rclpy' not in sys.modules, 'rclpy imported'")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_a_round_says_what_it_decided():
+    v = Verdicts({"creep": "not testable", "delay": "accepted"}, {}, {}, ("delay",), 0.1, 0.1,
+                 0.01, None, Path("d"))
+    t = np.arange(3.0)
+    rnd = InvestigationRound(1, (), PlannedInput(t, 1.0, Path("i"), "x", ()),
+                             Recorded(t, t, t, Path("r")), v, 0.0)
+    assert rnd.decided == {"delay": "accepted"}
