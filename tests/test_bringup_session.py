@@ -86,6 +86,13 @@ def test_experiment_of_ipmc_diagnose_plays_open_loop_in_lockstep(processes, tmp_
                    "--record", str(bag))
     assert _played(_commands_v(bag), u), out
     assert "14 s at 100 Hz" in out and "3 holds" in out
+    # lock-step: the record is the excitation, with the plant's first sample before it and
+    # the 0 V after it, and nothing more (the plant waits once the excitation has ended)
+    from ipmc_driver.dataio import load_record
+
+    record = load_record(bag)
+    assert record.u_v.size == u.size + 2, out
+    np.testing.assert_allclose(record.u_v[1:-1], u, atol=1e-9)
 
 
 def test_references_out_of_reach_or_malformed_are_refused_in_one_sentence(ros_env,

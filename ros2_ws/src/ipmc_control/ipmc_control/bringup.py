@@ -238,10 +238,16 @@ def excite_specs(*, rig_port: str | None, lockstep: bool, excitation: dict,
             rec["await_publishers"] = ["/ipmc/command"]
         specs.append(NodeSpec("recorder", "recorder", rec))
     listeners = 1 + bool(record)    # the excitation and the recorder take every sample
+    # Lock-step: the excitation stays, answering nothing after its end, so the plant waits
+    # until bringup stops it (GraphRun) instead of running on alone with nobody commanding.
     specs.append(NodeSpec("excitation", "excitation", {
-        **excitation, "rate_hz": rate_hz, "min_subscribers": listeners}))
-    specs.append(plant_spec(rig_port=rig_port, lockstep=lockstep, rate_hz=rate_hz,
-                            plant_effects=plant_effects, listeners=listeners))
+        **excitation, "rate_hz": rate_hz, "min_subscribers": listeners,
+        "exit_at_end": not sim_time}))
+    plant = plant_spec(rig_port=rig_port, lockstep=lockstep, rate_hz=rate_hz,
+                       plant_effects=plant_effects, listeners=listeners)
+    if sim_time:   # the wait for a command that will not come: no "stepped on" warnings
+        plant.params["lockstep_timeout_s"] = 5.0
+    specs.append(plant)
     return specs
 
 
@@ -370,6 +376,16 @@ def launch_specs(args: dict[str, str], *, rig: bool) -> list[NodeSpec]:
     return specs
 
 
+def count_console(specs: list[NodeSpec]) -> None:
+    """Count the console's subscriptions (displacement, reference) in the lock-step starts'
+    minimums: else the console stands in for a listener not yet subscribed (a recorder whose
+    sample subscriptions wait for the commands' publisher) and time starts without it."""
+    for spec in specs:
+        for name in ("lockstep_min_subscribers", "min_subscribers"):
+            if spec.executable in ("sim_plant", "reference") and name in spec.params:
+                spec.params[name] += 1
+
+
 class GraphRun:
     """One run of a graph from the console: start the nodes, echo their warnings and errors
     as they happen, print progress every ``PROGRESS_S``, stop them all, and summarise.
@@ -377,9 +393,14 @@ class GraphRun:
     The run ends on Ctrl-C (SIGINT/SIGTERM), after ``seconds``, when a node exits (an error,
     but the excitation's exit with code 0 is the end of its excitation)."""
 
-    #: Stop order: the commanders first (the excitation's and controller's last command is
-    #: 0 V), then the plant or driver, the recorder last (it keeps the final samples).
-    STOP_ORDER = ["excitation", "controller", "reference", "sim_plant", "driver"]
+    #: Stop order: the commanders first (the controller's last command is 0 V), then the
+    #: plant or driver, the recorder last (it keeps the final samples). Open loop, the plant
+    #: or driver first (the driver leaves the rig at 0 V; the excitation commands 0 V at its
+    #: end and its exit), so that no sample follows the excitation's end.
+    STOP_ORDER = ["controller", "reference", "sim_plant", "driver"]
+    EXCITE_STOP_ORDER = ["sim_plant", "driver", "excitation"]
+    #: The excitation's log line at its end.
+    FINISHED = "excitation: finished"
 
     def __init__(self, specs: list[NodeSpec], log_dir: Path, *, rig: bool,
                  total_samples: int | None = None) -> None:
@@ -397,6 +418,8 @@ class GraphRun:
         from ipmc_control.console import LogTail
 
         monitor = self._monitor()
+        if monitor is not None:
+            count_console(self.specs)
         code: int | None = None
         with Graph(env={**os.environ, "PYTHONUNBUFFERED": "1"}, log_dir=self.log_dir) as graph:
             for spec in self.specs:
@@ -411,8 +434,7 @@ class GraphRun:
                     monitor.spin_for(0.1)
                 else:
                     time.sleep(0.1)
-                self.echo()
-                code = self._exits(graph)
+                code = 0 if self.echo() else self._exits(graph)
                 now = time.monotonic()
                 if seconds and now - t0 >= seconds:
                     break
@@ -421,7 +443,8 @@ class GraphRun:
                     next_progress_s += PROGRESS_S
             # the last sample of the running loop: the summary's tracking error ends there
             self.until_ns = max(self.stats.displacement_mm, default=None)
-            took = graph.stop_all(order=self.STOP_ORDER)
+            took = graph.stop_all(order=self.EXCITE_STOP_ORDER if self.total_samples
+                                  else self.STOP_ORDER)
             self.elapsed_s = time.monotonic() - t0
         if monitor is not None:
             monitor.close()
@@ -443,22 +466,27 @@ class GraphRun:
         if not failed:
             return None
         if failed == {"excitation": 0}:
-            print("excitation finished", flush=True)
             return 0
         for name, code in failed.items():
             print(f"{name} exited with code {code}:\n{graph.log_tail(name)}", file=sys.stderr)
         return 1
 
-    def echo(self) -> None:
-        """Print the warning and error lines the nodes have logged since the last call."""
+    def echo(self) -> bool:
+        """Print the warning and error lines the nodes have logged since the last call;
+        whether the excitation logged its end among them."""
         from ipmc_control.console import alarm_line
 
+        finished = False
         for name, tail in self.tails.items():
             for line in tail.read():
+                finished |= name == "excitation" and self.FINISHED in line
                 alarm = alarm_line(name, line)
                 if alarm:
                     self.stats.on_alarm(alarm)
                     print(alarm, flush=True)
+        if finished:
+            print("excitation finished", flush=True)
+        return finished
 
     def summary(self, bag: Path | None) -> list[str]:
         """The end-of-run summary (``console.summary_lines``), from the bag when recorded."""

@@ -10,9 +10,11 @@ an ``ipmc diagnose`` next_experiment.json at ``rate_hz``); never beyond 3 V.
 
 The excitation starts with the first sample after ``/ipmc/command`` has matched
 ``min_subscribers`` subscriptions (the plant and a recorder), so a recorder holds every
-command; until then each sample is answered with 0 V. After the last voltage it commands
-0 V, logs how many samples it played, and exits (code 0) ``linger_s`` later: the end of the
-node is the end of the run for ``ipmc bringup --excite``.
+command; until then each sample is answered with 0 V. After the last voltage it logs
+"excitation: finished" and commands 0 V; then it exits (code 0) ``linger_s`` later, or, with
+``exit_at_end:=false``, answers no further sample and runs until stopped: a lock-step plant
+then waits instead of running on alone (``ipmc bringup --lockstep --excite`` stops the plant
+when it reads the line, so the record ends with the excitation).
 """
 
 from __future__ import annotations
@@ -49,6 +51,9 @@ PARAMETERS = {
         1, "start once /ipmc/command has matched this many subscriptions", True, non_negative),
     "linger_s": ParameterSpec(0.5, "wall time between the last command and the exit, s", True,
                               non_negative),
+    "exit_at_end": ParameterSpec(
+        True, "exit linger_s after the end; false: answer no further sample (a lock-step "
+        "plant then waits) and run until stopped", True),
 }
 
 
@@ -67,7 +72,8 @@ class ExcitationNode(Node):
         except ExcitationError as exc:
             raise ValueError(str(exc)) from None
         self._k = -1        # index of the next voltage; -1 until the start
-        self._linger_s = p["linger_s"]
+        self._linger_s, self._exit_at_end = p["linger_s"], p["exit_at_end"]
+        self._quiet = False
         self.pub = self.create_publisher(Float64, "/ipmc/command", COMMAND_QOS)
         self.pub_stamped = self.create_publisher(Vector3Stamped, "/ipmc/command_stamped",
                                                  COMMAND_QOS)
@@ -87,12 +93,18 @@ class ExcitationNode(Node):
             self._command(float(u[self._k]), msg)
             self._k += 1
             if self._k == u.size:
-                self.get_logger().info(f"excitation: finished, {u.size} samples "
-                                       f"({self.excitation.duration_s:g} s)")
-                self.create_timer(max(self._linger_s, 1e-3), self._exit,
-                                  clock=Clock(clock_type=ClockType.STEADY_TIME))
-        else:
+                self._finish()
+        elif self._k < 0 or self._exit_at_end or not self._quiet:
             self._command(0.0, msg)
+            # after the end, without exit_at_end: this 0 V, then no further answer
+            self._quiet = self._k >= u.size
+
+    def _finish(self) -> None:
+        self.get_logger().info(f"excitation: finished, {self.excitation.u_v.size} samples "
+                               f"({self.excitation.duration_s:g} s)")
+        if self._exit_at_end:
+            self.create_timer(max(self._linger_s, 1e-3), self._exit,
+                              clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def _command(self, u_v: float, sample: PointStamped) -> None:
         self.pub.publish(Float64(data=u_v))
