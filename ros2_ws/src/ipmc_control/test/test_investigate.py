@@ -10,6 +10,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
+from threadpoolctl import threadpool_limits
 
 from ipmc_control.excitation import load_excitation
 from ipmc_control.investigate import (
@@ -169,3 +171,48 @@ def test_a_round_says_what_it_decided():
     rnd = InvestigationRound(1, (), PlannedInput(t, 1.0, Path("i"), "x", ()),
                              Recorded(t, t, t, Path("r")), v, 0.0)
     assert rnd.decided == {"delay": "accepted"}
+
+
+# -- the loop on the simulated IPMC in process (each investigation runs once per module) ------
+def _investigate_in_process(tmp_path_factory, *effects: str) -> dict:
+    out = tmp_path_factory.mktemp("investigation") / "report"
+    argv = ["--sim", "--in-process", "--rate-hz", str(RATE_HZ), "--first-input", "random-sine",
+            "--seed", "0", "--report", str(out)]
+    for name in effects:
+        argv += ["--plant-effect", name]
+    with threadpool_limits(1):   # BLAS threads spinning on a shared machine slow fits ~10x
+        assert main(argv) == 0
+    return json.loads((out / "summary.json").read_text()) | {"dir": out}
+
+
+@pytest.fixture(scope="module")
+def creep_run(tmp_path_factory) -> dict:
+    return _investigate_in_process(tmp_path_factory, "creep")
+
+
+@pytest.fixture(scope="module")
+def clean_run(tmp_path_factory) -> dict:
+    return _investigate_in_process(tmp_path_factory)
+
+
+@pytest.mark.timeout(180)
+def test_creep_hidden_by_a_random_sine_is_named_after_the_proposed_experiment(creep_run):
+    first, second = creep_run["rounds"]
+    assert first["left_undecided"] == ["creep"]
+    assert "0 input holds" in first["reasons"]["creep"]
+    probes = [p for p in second["experiment"]["parts"] if p["effect"] == "creep"]
+    assert len(probes) == 2 and all("holds of" in p["reason"] for p in probes)
+    assert second["undecided"] == ["creep"] and second["decided"]["creep"] == "accepted"
+    assert creep_run["effects_found"] == ["creep"] and creep_run["undecided"] == []
+    gains = second["params"]["creep"]["gains_mm_per_v"]
+    assert -0.2 < sum(gains) < -0.07          # the plant's creep: -0.12 mm per V of charge
+    assert second["rmse_after_mm"] < 0.5 * second["rmse_before_mm"]
+    assert (creep_run["dir"] / "round_2" / "record.csv").is_file()
+    assert Path(creep_run["model_after"]).is_file()
+
+
+@pytest.mark.timeout(180)
+def test_a_clean_plant_stops_with_nothing_found(clean_run):
+    assert clean_run["effects_found"] == [] and clean_run["undecided"] == []
+    assert len(clean_run["rounds"]) <= 2
+    assert clean_run["stopped_because"].startswith("nothing undecided")

@@ -1,0 +1,155 @@
+"""Benchmark of ``ipmc investigate`` on the simulated IPMC in process: per case, the effects
+found, their parameters beside the plant's, the held-out error before and after beside the
+clean plant's, the simulated and wall time, and each proposed experiment's length beside what
+it decides. Prints figures; not part of the pass/fail suite.
+
+    .venv/bin/python benchmarks/bench_investigate.py [--case creep ...] [--rate-hz 50]
+
+Cases: a creep (tau 20 s) under a random sine (no holds); a transport delay (0.05 s) and a
+dead zone (0.3 V) under a smooth random sine (band 0.02-0.3 Hz: few fast components, no steps,
+no dwelling near 0 V); and the clean plant under a random sine. The clean plant's figure is its
+own core model's held-out error on the last round's input, same seed: the error left when
+nothing is missing (goal: the investigation's final error within 1.2 x it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from ipmc_control.investigate import (
+    InProcessRunner,
+    InputPart,
+    Investigation,
+    PlannedInput,
+    first_input,
+    investigate,
+    residual_diagnoser,
+)
+from ipmc_control.investigate_report import write_investigation
+
+SECONDS = 120.0
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    effects: tuple[str, ...]
+    smooth: bool          # a smooth first input (random sine up to 0.3 Hz)
+    plant: str            # the plant's parameter, in words
+
+
+CASES = {
+    "creep": Case("creep", ("creep",), False, "tau 20 s, gain -0.12 mm/V"),
+    "delay": Case("delay", ("delay",), True, "delay 0.050 s"),
+    "dead_zone": Case("dead_zone", ("dead_zone",), True, "width 0.300 V"),
+    "clean": Case("clean", (), False, "no optional effect"),
+}
+
+
+def smooth_input(rate_hz: float, seed: int, out_dir: Path) -> PlannedInput:
+    """A random sine over 0.02-0.3 Hz at +-3 V, written as the round's input.csv."""
+    from ipmc_control.excitation import Excitation, save_csv
+    from ipmc_driver.signals import random_sine
+
+    u = random_sine(SECONDS, rate_hz, 3.0, band_hz=(0.02, 0.3), seed=seed)[1]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = save_csv(Excitation(u, rate_hz, "smooth"), out_dir / "input.csv")
+    part = InputPart("first input: smooth random sine", "", 0.0, SECONDS,
+                     "random sum of sines over 0.02-0.3 Hz, +-3 V")
+    return PlannedInput(u, rate_hz, path, f"first input: smooth random sine, {SECONDS:g} s",
+                        (part,))
+
+
+def found_params(inv: Investigation) -> str:
+    """The accepted effects' parameters of the last round that accepted each."""
+    out = []
+    for rnd in inv.rounds:
+        for name, p in rnd.verdicts.params.items():
+            if name == "creep":
+                taus, gains = np.asarray(p["taus_s"]), np.asarray(p["gains_mm_per_v"])
+                mean_tau = float(gains @ taus / gains.sum())
+                out.append(f"creep taus {list(taus)} s gains {np.round(gains, 4).tolist()} "
+                           f"(sum {gains.sum():.3f} mm/V, gain-weighted tau {mean_tau:.1f} s)")
+            elif name == "delay":
+                out.append(f"delay {p['delay_s']:.3f} s")
+            elif name == "dead_zone":
+                out.append(f"dead zone {p['width_v']:.3f} V")
+            else:
+                out.append(f"{name} " + ", ".join(f"{k} {v}" for k, v in p.items()))
+    return "; ".join(out) or "-"
+
+
+def clean_rmse_mm(inv: Investigation, rate_hz: float, seed: int) -> float:
+    """The clean plant's core-model held-out error on the last round's input."""
+    from ipmc_driver.plant import IpmcPlant
+    from ipmc_model.diagnosis import diagnose
+
+    last = inv.rounds[-1]
+    run = IpmcPlant(effects=(), seed=seed + len(inv.rounds) - 1, dt_s=1.0 / rate_hz).run(
+        last.played.u_v)
+    return diagnose(run.t_s, run.u_v, run.y_mm, candidates=[]).rmse_after_mm
+
+
+def run_case(case: Case, rate_hz: float, seed: int, out: Path) -> list[str]:
+    """Investigate one case; the lines that report it."""
+    runner = InProcessRunner(list(case.effects), seed=seed, rate_hz=rate_hz)
+    first = (smooth_input(rate_hz, seed, out / "round_1") if case.smooth else
+             first_input("random-sine", seconds=SECONDS, rate_hz=rate_hz, amplitude_v=3.0,
+                         seed=seed, out_dir=out / "round_1"))
+    t0 = time.perf_counter()
+    inv = investigate(runner, first, residual_diagnoser(), out, budget_s=20 * 60.0,
+                      progress=lambda text: print(f"  [{case.name}] {text}", file=sys.stderr,
+                                                  flush=True))
+    wall_s = time.perf_counter() - t0
+    write_investigation(inv, out)
+    clean = clean_rmse_mm(inv, rate_hz, seed)
+    lines = [f"{case.name}: plant {case.plant}; first input "
+             f"{'smooth random sine' if case.smooth else 'random sine'} {SECONDS:g} s",
+             f"  effects found: {', '.join(inv.effects_found) or 'none'}; "
+             f"undecided: {', '.join(inv.undecided) or 'nothing'}; stopped: "
+             f"{inv.stopped_because}",
+             f"  parameters found: {found_params(inv)}",
+             f"  held-out RMSE before {inv.rmse_before_mm:.4f} mm, after "
+             f"{inv.rmse_after_mm:.4f} mm, clean plant {clean:.4f} mm (after / clean "
+             f"{inv.rmse_after_mm / clean:.2f})",
+             f"  rounds {len(inv.rounds)}, simulated {inv.recorded_s:.0f} s, wall "
+             f"{wall_s:.0f} s"]
+    for rnd in inv.rounds[1:]:
+        probes = [p for p in rnd.played.parts if p.effect]
+        probe_s = sum(p.duration_s for p in probes) / 2
+        lines.append(f"  round {rnd.number}: experiment {rnd.played.duration_s:.0f} s "
+                     f"(probes {probe_s:.0f} s, each played twice) deciding "
+                     f"{', '.join(rnd.undecided)}: "
+                     + "; ".join(f"{p.name} {p.duration_s:.0f} s: {p.reason}"
+                                 for p in probes[:len(probes) // 2])
+                     + f" -> {rnd.decided or 'nothing decided'}")
+    return lines
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--case", action="append", choices=list(CASES),
+                   help="cases to run (default all)")
+    p.add_argument("--rate-hz", type=float, default=50.0)
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args()
+    t0 = time.perf_counter()
+    with threadpool_limits(1), tempfile.TemporaryDirectory() as tmp:
+        for name in args.case or list(CASES):
+            for line in run_case(CASES[name], args.rate_hz, args.seed, Path(tmp) / name):
+                print(line, flush=True)
+    print(f"total wall time {time.perf_counter() - t0:.0f} s at {args.rate_hz:g} Hz, seed "
+          f"{args.seed}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
