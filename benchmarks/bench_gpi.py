@@ -17,7 +17,8 @@ Sections (each prints its table; ``--only NAME`` runs one):
 * ``periodic``: one sine identified (the default and ``--model lssvm-narx``), a random sine
   validated, beside a linear ARX(6, 6): does the model collapse on another input?
 * ``time``: ``ipmc identify --data F --out M`` (the default comparison and the refit) on a
-  60 000-sample record, wall time.
+  60 000-sample record: wall and CPU time (on one BLAS thread the CPU time is the wall time
+  of an otherwise idle machine).
 
 Not part of the pass/fail suite. Usage: ``.venv/bin/python benchmarks/bench_gpi.py [--only S]``.
 """
@@ -26,6 +27,8 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -171,12 +174,20 @@ def timing() -> None:
         csv = Path(tmp) / "rec.csv"
         np.savetxt(csv, np.column_stack([np.arange(u.size) / 100.0, u, y]), delimiter=",",
                    header="t,u,y", comments="", fmt="%.9g")
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), _children_cpu_s()
         subprocess.run([sys.executable, "-m", "ipmc_driver.cli", "identify", "--data", str(csv),
                         "--out", str(Path(tmp) / "m.json")], check=True,
                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        # One BLAS thread (the ipmc command's default): the CPU time is the wall time the
+        # command takes on a machine nothing else loads.
         print(f"time: ipmc identify --data F --out M on {u.size} samples: "
-              f"{time.perf_counter() - t0:.1f} s wall")
+              f"{time.perf_counter() - t0:.1f} s wall, {_children_cpu_s() - cpu0:.1f} s CPU "
+              f"(load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)")
+
+
+def _children_cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
 
 
 SECTIONS = {"rig": rig, "duhem": duhem, "piezo": piezo, "boucwen": boucwen,
