@@ -7,9 +7,10 @@ it decides. Prints figures; not part of the pass/fail suite.
 
 Cases: a creep (tau 20 s) under a random sine (no holds); a transport delay (0.05 s) and a
 dead zone (0.3 V) under a smooth random sine (band 0.02-0.3 Hz: few fast components, no steps,
-no dwelling near 0 V); and the clean plant under a random sine. The clean plant's figure is its
-own core model's held-out error on the last round's input, same seed: the error left when
-nothing is missing (goal: the investigation's final error within 1.2 x it).
+no dwelling near 0 V); and the clean plant under a random sine. The clean plant's figure is the
+diagnosis's final held-out error on the clean plant under the last round's input, same seed:
+the error left when nothing is missing (goal: the investigation's final error within 1.2 x
+it); what the diagnosis found there is printed beside it.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from ipmc_control.investigate import (
     residual_diagnoser,
 )
 from ipmc_control.investigate_report import write_investigation
+from ipmc_model.diagnosis import diagnose  # scipy's BLAS loaded before the thread limit
 
 SECONDS = 120.0
 
@@ -68,34 +70,38 @@ def smooth_input(rate_hz: float, seed: int, out_dir: Path) -> PlannedInput:
                         (part,))
 
 
+def describe_params(name: str, p: dict) -> str:
+    """An accepted effect's parameters in the plant's terms."""
+    if name == "creep":
+        taus, gains = np.asarray(p["taus_s"], float), np.asarray(p["gains_mm_per_v"], float)
+        mean_tau = float(gains @ taus / gains.sum())
+        return (f"creep taus {taus.tolist()} s gains {np.round(gains, 4).tolist()} mm/V (sum "
+                f"{gains.sum():.3f} mm/V, gain-weighted tau {mean_tau:.1f} s)")
+    if name == "delay":
+        return f"delay {p['delay_s']:.3f} s"
+    if name == "dead_zone":
+        return f"dead zone {p['width_v']:.3f} V"
+    return f"{name} " + ", ".join(f"{k} {v:.3g}" for k, v in p.items())
+
+
 def found_params(inv: Investigation) -> str:
-    """The accepted effects' parameters of the last round that accepted each."""
-    out = []
-    for rnd in inv.rounds:
-        for name, p in rnd.verdicts.params.items():
-            if name == "creep":
-                taus, gains = np.asarray(p["taus_s"]), np.asarray(p["gains_mm_per_v"])
-                mean_tau = float(gains @ taus / gains.sum())
-                out.append(f"creep taus {list(taus)} s gains {np.round(gains, 4).tolist()} "
-                           f"(sum {gains.sum():.3f} mm/V, gain-weighted tau {mean_tau:.1f} s)")
-            elif name == "delay":
-                out.append(f"delay {p['delay_s']:.3f} s")
-            elif name == "dead_zone":
-                out.append(f"dead zone {p['width_v']:.3f} V")
-            else:
-                out.append(f"{name} " + ", ".join(f"{k} {v}" for k, v in p.items()))
-    return "; ".join(out) or "-"
+    """Each round's accepted effects and their parameters."""
+    out = [f"round {rnd.number}: " + "; ".join(describe_params(n, p)
+                                               for n, p in rnd.verdicts.params.items())
+           for rnd in inv.rounds if rnd.verdicts.params]
+    return " | ".join(out) or "-"
 
 
-def clean_rmse_mm(inv: Investigation, rate_hz: float, seed: int) -> float:
-    """The clean plant's core-model held-out error on the last round's input."""
+def clean_twin(inv: Investigation, rate_hz: float, seed: int) -> tuple[float, list[str]]:
+    """The clean plant under the last round's input (same seed): the diagnosis's final
+    held-out error and what it found there."""
     from ipmc_driver.plant import IpmcPlant
-    from ipmc_model.diagnosis import diagnose
 
     last = inv.rounds[-1]
     run = IpmcPlant(effects=(), seed=seed + len(inv.rounds) - 1, dt_s=1.0 / rate_hz).run(
         last.played.u_v)
-    return diagnose(run.t_s, run.u_v, run.y_mm, candidates=[]).rmse_after_mm
+    d = diagnose(run.t_s, run.u_v, run.y_mm)
+    return d.rmse_after_mm, d.effects_found
 
 
 def run_case(case: Case, rate_hz: float, seed: int, out: Path) -> list[str]:
@@ -110,7 +116,7 @@ def run_case(case: Case, rate_hz: float, seed: int, out: Path) -> list[str]:
                                                   flush=True))
     wall_s = time.perf_counter() - t0
     write_investigation(inv, out)
-    clean = clean_rmse_mm(inv, rate_hz, seed)
+    clean, clean_found = clean_twin(inv, rate_hz, seed)
     lines = [f"{case.name}: plant {case.plant}; first input "
              f"{'smooth random sine' if case.smooth else 'random sine'} {SECONDS:g} s",
              f"  effects found: {', '.join(inv.effects_found) or 'none'}; "
@@ -119,7 +125,8 @@ def run_case(case: Case, rate_hz: float, seed: int, out: Path) -> list[str]:
              f"  parameters found: {found_params(inv)}",
              f"  held-out RMSE before {inv.rmse_before_mm:.4f} mm, after "
              f"{inv.rmse_after_mm:.4f} mm, clean plant {clean:.4f} mm (after / clean "
-             f"{inv.rmse_after_mm / clean:.2f})",
+             f"{inv.rmse_after_mm / clean:.2f}; found on the clean plant: "
+             f"{', '.join(clean_found) or 'nothing'})",
              f"  rounds {len(inv.rounds)}, simulated {inv.recorded_s:.0f} s, wall "
              f"{wall_s:.0f} s"]
     for rnd in inv.rounds[1:]:
@@ -131,6 +138,7 @@ def run_case(case: Case, rate_hz: float, seed: int, out: Path) -> list[str]:
                      + "; ".join(f"{p.name} {p.duration_s:.0f} s: {p.reason}"
                                  for p in probes[:len(probes) // 2])
                      + f" -> {rnd.decided or 'nothing decided'}")
+        lines += [f"    {n}: {rnd.verdicts.reasons[n]}" for n in rnd.undecided]
     return lines
 
 

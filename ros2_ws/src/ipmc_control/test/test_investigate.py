@@ -216,3 +216,11 @@ def test_a_clean_plant_stops_with_nothing_found(clean_run):
     assert clean_run["effects_found"] == [] and clean_run["undecided"] == []
     assert len(clean_run["rounds"]) <= 2
     assert clean_run["stopped_because"].startswith("nothing undecided")
+
+
+def test_help_describes_the_loop(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = capsys.readouterr().out
+    assert "--first-input" in text and "--budget-min" in text and "--in-process" in text
+    assert not HISTORY.search(text)
