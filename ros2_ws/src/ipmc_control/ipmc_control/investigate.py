@@ -510,8 +510,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ipmc investigate: error in {inv.error}", file=sys.stderr)
         return 1
     found = ", ".join(summary["effects_found"]) or "none"
-    print(f"effects found: {found}; held-out free-run RMSE {summary['rmse_before_mm']:.4f} mm "
-          f"before, {summary['rmse_after_mm']:.4f} mm after; {len(inv.rounds)} rounds, "
+    rmse = ("" if not inv.rounds else f"; held-out free-run RMSE {inv.rmse_before_mm:.4f} mm "
+            f"before, {inv.rmse_after_mm:.4f} mm after")
+    print(f"effects found: {found}{rmse}; {len(inv.rounds)} rounds, "
           f"{inv.recorded_s / 60:.1f} min recorded; report in {out}")
     return 130 if inv.interrupted else 0
 
