@@ -107,10 +107,11 @@ class RunStats:
         return self.samples / (now_s - self.first_sample_s)
 
     def progress_line(self, now_s: float, total_samples: int | None = None) -> str:
-        """``"12.0 s: 1187 samples, 99.8 Hz, link connected"``, and the share of
+        """``"12.0 s: 1187 samples, 99.8 per s, link connected"`` (samples per wall second: a
+        lock-step plant runs faster than real time), and the share of
         ``total_samples`` (an excitation's length) seen so far."""
         elapsed_s = now_s - self.started_s
-        text = f"{elapsed_s:6.1f} s: {self.samples} samples, {self.rate_hz(now_s):.1f} Hz"
+        text = f"{elapsed_s:6.1f} s: {self.samples} samples, {self.rate_hz(now_s):.1f} per s"
         if self.link_state is not None:
             text += f", link {self.link_state}"
         if total_samples:

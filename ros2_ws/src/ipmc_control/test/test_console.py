@@ -63,7 +63,7 @@ def test_progress_and_summary_name_samples_rate_link_rmse_and_logs():
     stats.on_link({"state": "connected", "connections": "1", "dropped": "2",
                    "rig_errors": "0"})
     line = stats.progress_line(105.0, total_samples=1000)
-    assert line.startswith("   5.0 s: 500 samples, 100.0 Hz, link connected, 50 % played")
+    assert line.startswith("   5.0 s: 500 samples, 100.0 per s, link connected, 50 % played")
     lines = summary_lines(stats, elapsed_s=6.0, log_dir=Path("/x/bag_logs"),
                           bag=Path("/x/bag"), samples=512, sample_rate_hz=100.0,
                           rmse=(0.0123, 400), rig=True)
