@@ -186,3 +186,16 @@ def test_rig_run_shows_the_link_state_and_its_fault_on_the_console(processes, tm
     summary = out[out.index("summary:"):]
     assert "link: 1 faults, state connected" in summary, out
     assert "1 faults" in summary and "0 errors" in summary
+
+
+@pytest.mark.parametrize("params,sentence", [
+    (["-p", "kind:=file", "-p", "path:=/nonexistent/u.csv"], "/nonexistent/u.csv is not a file"),
+    (["-p", "amplitude_v:=4.0"], "the amplitude must be > 0 and <= 3 V"),
+    (["-p", "kind:=chirp"], "kind"),
+])
+def test_excitation_node_refuses_bad_parameters_in_one_sentence(ros_env, params, sentence):
+    run = subprocess.run([str(VENV_BIN / "excitation"), "--ros-args", *params], env=ros_env,
+                         capture_output=True, text=True, timeout=30)
+    assert run.returncode == 1, run.stderr
+    lines = [ln for ln in run.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("excitation: error:") and sentence in lines[0]
