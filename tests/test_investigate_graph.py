@@ -81,3 +81,31 @@ def test_ctrl_c_stops_the_graph_at_0_v_and_keeps_the_record(processes, tmp_path)
     assert summary["stopped_because"].startswith("interrupted during round 1")
     assert _commands_v(bag)[-1] == 0.0
     assert len(load_record(bag)) > 100
+
+
+@pytest.mark.timeout(150)
+def test_a_round_on_the_emulated_rig_through_the_driver(processes, tmp_path):
+    """--rig on the rig emulator's pty: the driver streams the record in real time."""
+    emu = subprocess.Popen([sys.executable, "-m", "ipmc_driver.emulator", "--link",
+                            str(tmp_path / "ttyRIG")], env=processes.env,
+                           stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
+    try:
+        port = emu.stdout.readline().strip()
+        report = tmp_path / "inv"
+        proc = processes.start("investigate", [
+            str(VENV_BIN / "ipmc"), "investigate", "--rig", port, "--first-seconds", "30",
+            "--budget-min", "0.6", "--report", str(report)])
+        proc.wait(timeout=120)
+    finally:
+        emu.send_signal(signal.SIGINT)
+        try:
+            emu.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            emu.kill()
+            emu.wait()
+    out = processes.log("investigate")
+    assert proc.returncode == 0, out
+    summary = json.loads((report / "summary.json").read_text())
+    assert summary["runner"] == f"the rig on {port} through the driver"
+    assert len(summary["rounds"]) == 1 and summary["stopped_because"].startswith("budget"), out
+    assert 29.0 < summary["rounds"][0]["recorded_s"] < 31.0

@@ -257,7 +257,7 @@ def play_round(number: int, plan: PlannedInput, undecided: tuple[str, ...], runn
     """Play ``plan``, record it and diagnose the record into ``out_dir``."""
     t0 = time.monotonic()
     why = f" to decide {', '.join(undecided)}" if undecided else ""
-    say(f"round {number}: playing {plan.label}{why} on {runner.describe()}")
+    say(f"round {number}: playing {plan.label}{why} on {runner.describe()} (into {out_dir})")
     rec = runner.record(plan, out_dir)
     say(f"round {number}: recorded {rec.u_v.size} samples ({rec.duration_s:.0f} s) in "
         f"{rec.path}; diagnosing")
@@ -412,8 +412,9 @@ class GraphRunner:
                 stop_process(proc)
                 raise
         if code != 0:
+            hint = "" if self.rig_port else " (--in-process runs the simulated IPMC without ROS)"
             raise RuntimeError(f"ipmc bringup exited with code {code}; see "
-                               f"{out_dir / 'bringup.log'}")
+                               f"{out_dir / 'bringup.log'}{hint}")
         rec = load_record(bag)
         return Recorded(rec.t_s - rec.t_s[0], rec.u_v, rec.y_mm, bag)
 
