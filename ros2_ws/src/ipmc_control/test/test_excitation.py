@@ -94,3 +94,26 @@ def test_an_experiment_of_ipmc_diagnose_plays_its_voltages(tmp_path):
     (tmp_path / "fast.json").write_text(json.dumps({**doc, "rate_hz": 200.0}))
     with pytest.raises(ExcitationError, match="200 Hz but the plant at 100 Hz"):
         load_excitation(tmp_path / "fast.json", 100.0)
+
+
+@pytest.mark.parametrize("lockstep,record", [(False, "bag"), (True, "bag"), (True, None)])
+def test_open_loop_graph_has_no_controller_and_waits_for_its_listeners(lockstep, record):
+    from ipmc_control.bringup import excite_specs
+
+    specs = {s.name: s.params for s in excite_specs(
+        rig_port=None, lockstep=lockstep, excitation={"kind": "steps"}, plant_effects=[],
+        record=record)}
+    assert set(specs) == {"excitation", "sim_plant"} | ({"recorder"} if record else set())
+    listeners = 1 + bool(record)
+    assert specs["excitation"]["min_subscribers"] == listeners
+    assert specs["excitation"]["exit_at_end"] is not lockstep
+    if record:
+        assert specs["recorder"]["topics"] == ["/ipmc/command", "/ipmc/voltage",
+                                               "/ipmc/displacement"]
+    if lockstep:
+        assert specs["sim_plant"]["lockstep_min_subscribers"] == listeners
+        assert specs["sim_plant"]["lockstep_min_command_publishers"] == 1
+    rig = {s.name for s in excite_specs(rig_port="/dev/ttyX", lockstep=lockstep,
+                                        excitation={"kind": "mixed"}, plant_effects=[],
+                                        record=record)}
+    assert "driver" in rig and "sim_plant" not in rig
