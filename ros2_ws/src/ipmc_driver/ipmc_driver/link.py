@@ -411,6 +411,7 @@ class DriverLink:
         self._period_ns = (Fraction(10**9)
                            / Fraction(self.config.sample_rate_hz).limit_denominator(10**6))
         self._t0_ns: int | None = None
+        self._last_stamp_ns = -1
         self.out_of_range = 0
         self.rig_errors = 0
         self._rig_error_logged_s = -math.inf
@@ -628,19 +629,19 @@ class DriverLink:
     def drain(self, ros_now_ns: Callable[[], int]) -> list[LinkSample]:
         """The samples the reader queued, ready to publish; handles STATUS and ERROR frames.
 
-        ``ros_now_ns`` gives the node's clock; it anchors the stamps at the first sample (and
-        again after a firmware restart): afterwards the counter alone gives the instants.
+        Stamps are ``t0 + counter / rate`` on the node's clock (``ros_now_ns``), ``t0`` set
+        at the first sample and again after a firmware restart (:meth:`_anchor`).
         """
-        out = []
+        batch = []   # (counter, sample, arrival_s, restarted)
         while True:
             try:
                 msg, arrival_s = self._inbox.get_nowait()
             except queue.Empty:
-                return out
+                break
             if isinstance(msg, Sample):
-                sample = self._on_sample(msg, arrival_s, ros_now_ns)
-                if sample is not None:
-                    out.append(sample)
+                counted = self._count(msg, arrival_s)
+                if counted is not None:
+                    batch.append(counted)
             elif isinstance(msg, Status):
                 self.rig_rate_hz = msg.sample_rate_hz
             elif isinstance(msg, RigError):
@@ -648,9 +649,19 @@ class DriverLink:
                 if arrival_s - self._rig_error_logged_s >= 1.0:
                     self._rig_error_logged_s = arrival_s
                     self._log("warn", f"rig reports error {msg.code} ({msg.detail})")
+        now_ns, now_s = ros_now_ns(), self._clock()
+        # each sample's earliest anchor: its own or a later one's of the batch (no restart
+        # between), so a chunk of samples read together is stamped with its true spacing
+        anchors = [now_ns - max(0, int((now_s - arrival) * 1e9)) - int(c * self._period_ns)
+                   for c, _, arrival, _ in batch]
+        for i in range(len(batch) - 2, -1, -1):
+            if not batch[i + 1][3]:
+                anchors[i] = min(anchors[i], anchors[i + 1])
+        out = [self._stamped(*item, anchor) for item, anchor in zip(batch, anchors, strict=True)]
+        return [s for s in out if s is not None]
 
-    def _on_sample(self, sample: Sample, arrival_s: float,
-                   ros_now_ns: Callable[[], int]) -> LinkSample | None:
+    def _count(self, sample: Sample, arrival_s: float) -> tuple | None:
+        """The sample's unwrapped counter (None: a duplicate or an old one), its latency."""
         sent_at = self._sent_at.pop(sample.command_seq, None)
         if sent_at is not None:
             self.latencies_s.append(arrival_s - sent_at)
@@ -659,15 +670,31 @@ class DriverLink:
         if counter is None:
             return None
         self.last_sample_s = arrival_s
-        if self._t0_ns is None or self.counter.restarts != restarts:
-            self._t0_ns = ros_now_ns() - int(counter * self._period_ns)
+        return counter, sample, arrival_s, self.counter.restarts != restarts
+
+    def _stamped(self, counter: int, sample: Sample, arrival_s: float, restarted: bool,
+                 anchor_ns: int) -> LinkSample | None:
+        """A sample stamped ``t0 + counter / rate``. A sample cannot arrive before it was
+        taken: one that arrives a period or more sooner after its instant than ``t0`` says
+        shows that ``t0`` was set on a late sample (the rig's transmit buffer emptied in a
+        burst at connection, a stalled reader), and ``t0`` moves back by whole periods (the
+        stamps stay on one grid, and increasing). Arrival jitter below a period is left
+        alone: the grid is what consumers align counters with."""
+        offset = int(counter * self._period_ns)
+        if self._t0_ns is None or restarted:
+            self._t0_ns = anchor_ns
+        elif anchor_ns <= self._t0_ns - self._period_ns:
+            periods = min((self._t0_ns - anchor_ns) // self._period_ns,
+                          (self._t0_ns + offset - self._last_stamp_ns - 1) // self._period_ns)
+            self._t0_ns -= int(max(0, periods) * self._period_ns)
         geometry = self.config.geometry
         if sample.laser_mm is None or not geometry.in_range(sample.laser_mm):
             self.out_of_range += 1  # on /diagnostics, never published as a number
             return None
         self.published += 1
-        return LinkSample(counter, self._t0_ns + int(counter * self._period_ns),
-                          sample.applied_v, self._requested_by_seq.get(sample.command_seq, 0.0),
+        self._last_stamp_ns = self._t0_ns + offset
+        return LinkSample(counter, self._last_stamp_ns, sample.applied_v,
+                          self._requested_by_seq.get(sample.command_seq, 0.0),
                           geometry.compensate_scalar(sample.laser_mm), arrival_s)
 
     # ------------------------------------------------------------------ diagnostics

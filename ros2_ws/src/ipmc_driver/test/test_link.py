@@ -13,6 +13,7 @@ import subprocess
 import sys
 import threading
 
+import numpy as np
 import pytest
 
 from ipmc_driver.arc import ArcGeometry
@@ -389,11 +390,47 @@ def test_samples_stamped_from_counter_compensated_and_paired(rig):
     samples = received(link, rig, rig.ports[0], messages)
     assert [s.counter for s in samples] == [10, 15]
     assert samples[1].stamp_ns - samples[0].stamp_ns == 5 * 5_000_000
-    assert samples[0].stamp_ns == 10**12  # anchored at the first sample
+    # read in one chunk: the latest sample arrived nearest its instant and anchors them all
+    assert samples[1].stamp_ns == 10**12
     assert [s.y_mm for s in samples] == pytest.approx([-1.0, 0.5], abs=5e-3)
     assert [s.requested_v for s in samples] == [0.8, 0.8]
     assert link.out_of_range == 2 and link.counter.dropped == 2
     assert link.rig_rate_hz == 200 and link.published == 2
     assert len(link.latencies_s) == 1
     assert [r.level for r in link.diagnostics(rig.now)][2:] == [OK, OK]
+    link.shutdown()
+
+
+def test_a_burst_of_buffered_samples_does_not_make_every_later_stamp_late(rig):
+    """At connection the rig's transmit buffer empties in a burst: 0.5 s of old samples arrive
+    at once. The stamps of the samples after it are their instants, not 0.5 s late, and all
+    stamps increase."""
+    link = rig.link(sample_rate_hz=100.0, watchdog_s=30.0)
+    rig.run(link, 0.1)
+    geo = ArcGeometry()
+
+    def ros_now_ns() -> int:   # the node's clock: 1000 s ahead of the link's
+        return int((1000.0 + rig.now) * 1e9)
+
+    def arrive(counters) -> list:
+        rig.frames.clear()
+        rig.ports[0].feed(b"".join(encode_message(Sample(c, 0.0, geo.reading_scalar(0.0), 0),
+                                                  seq=c % 256) for c in counters))
+        wait_until(rig.frames.is_set)
+        return link.drain(ros_now_ns)
+
+    burst = arrive(range(50))          # samples 0-49, the last one taken now
+    later = []
+    for c in range(50, 60):            # then the next ones as they come, each after its instant
+        rig.run(link, rig.now + 0.01)
+        later += arrive([c])
+    stamps = [s.stamp_ns for s in burst + later]
+    assert np.all(np.diff(stamps) > 0)
+    # the burst's samples too get their instants: 10 ms apart, the last one now
+    assert np.diff([s.stamp_ns for s in burst]) == pytest.approx(10_000_000, abs=1)
+    taken_s = burst[-1].arrival_s   # sample 49 was taken as the burst arrived
+    for s in later:   # the instants, not 0.5 s late; never after the arrival
+        assert s.stamp_ns == pytest.approx((1000.0 + taken_s + (s.counter - 49) * 0.01) * 1e9,
+                                           abs=1e3)
+        assert s.stamp_ns <= (1000.0 + s.arrival_s) * 1e9
     link.shutdown()
