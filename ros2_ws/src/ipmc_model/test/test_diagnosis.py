@@ -96,6 +96,11 @@ def test_creep_needs_holds_and_is_found_on_them():
     held = diagnose(plant_record(fx, 150.0, 1, holds=True))
     assert held.effects_found[:1] == ["creep"]
     assert held.rmse_after_mm < 0.3 * held.rmse_before_mm
+    # one relaxation's time constant with its 95 % interval, around the plant's 12 s
+    p = next(r for r in held.candidates if r.name == "creep").evidence.params
+    lo, hi = p["tau_ci_s"]
+    assert lo < 12.0 < hi and lo <= p["tau_s"] <= hi and hi - lo < 6.0
+    assert p["gain_ci_mm_per_v"][0] < p["gain_mm_per_v"] < p["gain_ci_mm_per_v"][1] < 0
 
 
 def test_a_given_model_gets_the_block_of_what_changed_fitted_around_it():

@@ -21,7 +21,8 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from scipy.optimize import minimize_scalar
+from scipy.optimize import brentq, minimize_scalar
+from scipy.stats import chi2
 
 from ..hysteresis import (
     DEFAULT_MEMORY_TAUS_S,
@@ -31,6 +32,7 @@ from ..hysteresis import (
     estimate_delay,
     hinge_basis,
     hinge_slope,
+    lowpass_bank,
 )
 from .experiment import Probe, crossings, holds, probe_level_v
 from .record import DiagnosisRecord
@@ -249,8 +251,9 @@ class Creep(Candidate):
 
     def probe(self, rec, model, result):
         ev = result.evidence
-        taus = ev.params.get("taus_s", []) if ev is not None else []
-        tau = max([float(t) for t in taus] + [rec.config.creep_min_tau_s])
+        # the upper end of the creep's 95 % interval: the holds decide every tau it allows
+        upper = ev.params.get("tau_ci_s", [0.0, 0.0])[1] if ev is not None else 0.0
+        tau = max(float(upper), rec.config.creep_min_tau_s)
         hold_s = max(HOLD_TAUS * tau, rec.config.hold_min_s)
         a = probe_level_v(rec)
         return Probe(self.name, holds((a, -a), hold_s, 1.0 / rec.dt_s),
@@ -263,14 +266,12 @@ class Creep(Candidate):
         if not taus:
             return "no creep time constant the fit part can identify"
         m = refit_with(model, rec, output_taus_s=tuple(model.output_taus_s) + taus)
-        return Fitted(m, _creep_params(m, taus))
+        return Fitted(m, _creep_params(m, taus, rec))
 
     def around(self, model, rec):
         taus = creep_taus(model, rec)
         if not taus:
             return "no creep time constant the fit part can identify"
-
-        from ..hysteresis import lowpass_bank
 
         m = copy.deepcopy(model)
         v = m._charge(rec.u_v[rec.fit], m._theta)
@@ -278,13 +279,67 @@ class Creep(Candidate):
         r = rec.y_mm[rec.fit] - m.simulate(rec.u_v[rec.fit])
         m.output_taus_s = tuple(m.output_taus_s) + taus
         m.output_coef_ = np.concatenate([m.output_coef_, np.linalg.lstsq(X, r, rcond=None)[0]])
-        return Fitted(m, _creep_params(m, taus))
+        return Fitted(m, _creep_params(m, taus, rec))
 
 
-def _creep_params(m: GeneralizedPI, taus) -> dict:
-    """The creep's time constants and its gain on each (mm per V of charge)."""
+def _creep_params(m: GeneralizedPI, taus, rec: DiagnosisRecord) -> dict:
+    """The creep's bank (time constants, gain on each in mm per V of charge) and one
+    relaxation's time constant and gain with their 95 % intervals (:func:`creep_estimate`)."""
     n = len(taus)
-    return {"taus_s": list(taus), "gains_mm_per_v": [float(g) for g in m.output_coef_[-n:]]}
+    est = creep_estimate(m, n, rec)
+    return {"taus_s": list(taus), "gains_mm_per_v": [float(g) for g in m.output_coef_[-n:]],
+            **est}
+
+
+def effective_samples(e: np.ndarray) -> float:
+    """n / (1 + 2 sum rho_k): the residual's samples worth of independent ones, the
+    autocorrelations summed up to the first that is not positive (Geyer's initial positive
+    sequence); a slow residual has few."""
+    e = e - e.mean()
+    f = np.fft.rfft(e, 2 * e.size)
+    acf = np.fft.irfft(f * np.conj(f))[:e.size]
+    acf = acf / acf[0]
+    stop = int(np.argmax(acf[1:] <= 0)) + 1 if np.any(acf[1:] <= 0) else e.size
+    return float(e.size / max(1.0, 1.0 + 2.0 * acf[1:stop].sum()))
+
+
+def creep_estimate(m: GeneralizedPI, n_bank: int, rec: DiagnosisRecord) -> dict:
+    """One relaxation ``g * lowpass(v, tau)`` fitted, over the fit rows, to what the model
+    leaves without its last ``n_bank`` output relaxations: ``tau_s`` and ``gain_mm_per_v``
+    with 95 % intervals. tau's is the profile-likelihood interval (the sum of squares within
+    chi2(1) 0.95 of its minimum) and the gain's the Wald one at that tau, both with the
+    residual's effective sample size (:func:`effective_samples`): the residual of a free run
+    is far from white, and n alone would make the intervals too narrow."""
+    u, y = rec.u_v[rec.fit], rec.y_mm[rec.fit]
+    base = copy.deepcopy(m)
+    base.output_coef_ = np.concatenate([m.output_coef_[:-n_bank], np.zeros(n_bank)])
+    r = y - base.simulate(u)
+    v = m._charge(u, m._theta)
+    lo, hi = rec.config.creep_min_tau_s / 3.0, rec.excitation.fit_span_s / MIN_SPANS_PER_TAU
+
+    def fit(tau: float) -> tuple[float, float, np.ndarray]:
+        x = lowpass_bank(v, (tau,), rec.dt_s)[0][:, 0]
+        g = float(x @ r / (x @ x))
+        return float(np.sum((r - g * x) ** 2)), g, x
+
+    grid = np.geomspace(lo, hi, 40)
+    k = int(np.argmin([fit(t)[0] for t in grid]))
+    res = minimize_scalar(lambda lt: fit(math.exp(lt))[0],
+                          bounds=(math.log(grid[max(k - 1, 0)]),
+                                  math.log(grid[min(k + 1, grid.size - 1)])), method="bounded")
+    tau = math.exp(res.x)
+    sse, g, x = fit(tau)
+    n_eff = effective_samples(r - g * x)
+    limit = chi2.ppf(0.95, 1) / n_eff   # ln(SSE / SSE_min) at the interval's ends
+
+    def excess(t: float) -> float:
+        return math.log(fit(t)[0] / sse) - limit
+
+    ends = [brentq(excess, a, b, xtol=1e-3 * tau) if excess(a) * excess(b) < 0 else a
+            for a, b in ((lo, tau), (hi, tau))]
+    half = 1.96 * math.sqrt(sse / n_eff / float(x @ x))
+    return {"tau_s": tau, "tau_ci_s": [float(ends[0]), float(ends[1])],
+            "gain_mm_per_v": g, "gain_ci_mm_per_v": [g - half, g + half]}
 
 
 def fit_drift(model: GeneralizedPI, rec: DiagnosisRecord) -> GeneralizedPI:
