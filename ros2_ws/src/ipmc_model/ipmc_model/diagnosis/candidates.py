@@ -79,6 +79,11 @@ class Candidate:
     def fit(self, model: GeneralizedPI, rec: DiagnosisRecord, given: bool) -> Fitted | str:
         return self.around(model, rec) if given else self.refit(model, rec)
 
+    def refine(self, before: GeneralizedPI, rec: DiagnosisRecord, given: bool) -> dict:
+        """Parameters worth a costlier estimate once the effect is accepted around
+        ``before`` (they replace the round's); none by default."""
+        return {}
+
 
 CANDIDATES: dict[str, Candidate] = {}
 
@@ -280,6 +285,49 @@ class Creep(Candidate):
         m.output_taus_s = tuple(m.output_taus_s) + taus
         m.output_coef_ = np.concatenate([m.output_coef_, np.linalg.lstsq(X, r, rcond=None)[0]])
         return Fitted(m, _creep_params(m, taus, rec))
+
+    def refine(self, before, rec, given):
+        # around a given model the block is linear and its estimate already the profile's
+        return {} if given else creep_profile(before, rec)
+
+
+def creep_profile(before: GeneralizedPI, rec: DiagnosisRecord, n_taus: int = 9) -> dict:
+    """tau_s of one creep relaxation added to ``before`` and refitted with it (quick refits on
+    a log grid of tau), with the profile-likelihood 95 % interval: the fit rows' sum of
+    squares within chi2(1) 0.95 of its minimum at the residual's effective sample size. The
+    whole model moves with tau here, so the interval carries what the other parameters can
+    take up of a relaxation (an end at the grid's edge: open there)."""
+    lo, hi = rec.config.creep_min_tau_s / 3.0, rec.excitation.fit_span_s / MIN_SPANS_PER_TAU
+    grid = np.geomspace(lo, hi, n_taus)
+    params = {**before.get_params(), "alphas": (before.cv_.alpha,), "max_nfev": SCAN_NFEV}
+    u, y = rec.u_v[rec.fit], rec.y_mm[rec.fit]
+    fits = [GeneralizedPI(**{**params, "output_taus_s": (*before.output_taus_s, float(t))}
+                          ).fit(u, y) for t in grid]
+    sse = np.array([m.train_rmse_ ** 2 * u.size for m in fits])
+    k = int(np.argmin(sse))
+    n_eff = effective_samples(fits[k].simulate(u) - y)
+    x, step = np.log(grid), float(np.log(grid[1] / grid[0]))
+    excess = n_eff * np.log(sse / sse.min()) - chi2.ppf(0.95, 1)
+    if 0 < k < n_taus - 1 and min(excess[k - 1], excess[k + 1]) > 0:
+        # the interval lies within the neighbours: the parabola through the three points
+        a, b, c = n_eff * np.log(sse[k - 1:k + 2] / sse.min())
+        curv = (a - 2 * b + c) / step ** 2
+        centre = x[k] + 0.5 * step * (a - c) / (a - 2 * b + c)
+        half = math.sqrt(chi2.ppf(0.95, 1) / (0.5 * curv))
+        return {"tau_s": float(np.exp(centre)),
+                "tau_ci_s": [float(np.exp(centre - half)), float(np.exp(centre + half))],
+                "tau_interval": "profile of refits"}
+    ends = []
+    for side in (range(k, -1, -1), range(k, n_taus)):   # an end at the grid's edge: open
+        idx = list(side)
+        end = float(x[idx[-1]])
+        for i, j in zip(idx, idx[1:], strict=False):
+            if excess[j] > 0:   # crossed between the two: interpolate in log tau
+                end = float(x[i] + (x[j] - x[i]) * -excess[i] / (excess[j] - excess[i]))
+                break
+        ends.append(end)
+    return {"tau_s": float(grid[k]), "tau_ci_s": [float(np.exp(ends[0])), float(np.exp(ends[1]))],
+            "tau_interval": "profile of refits"}
 
 
 def _creep_params(m: GeneralizedPI, taus, rec: DiagnosisRecord) -> dict:

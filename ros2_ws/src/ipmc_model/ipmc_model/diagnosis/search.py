@@ -8,6 +8,7 @@ the next round starts from the model with it. The search stops when a round acce
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -132,6 +133,15 @@ def _verdict(name, ev: Evidence, best, passing, alpha, untestable) -> tuple[Outc
     return Outcome.REJECTED, f"{text}; significant but below the materiality margin"
 
 
+def _with_params(rnd: Round, params: dict) -> Round:
+    """``rnd`` with its accepted candidate's parameters updated by ``params``."""
+    def update(r: CandidateResult) -> CandidateResult:
+        if r.name != rnd.accepted or r.evidence is None:
+            return r
+        return replace(r, evidence=replace(r.evidence, params={**r.evidence.params, **params}))
+    return replace(rnd, results=tuple(update(r) for r in rnd.results))
+
+
 def diagnose(t_s, u_v, y_mm, *, model=None, config: DiagnosisConfig | None = None,
              candidates=None, progress=None) -> Diagnosis:
     """Diagnose one record: the missing effects of ``model`` (another day's GPI, frozen) or
@@ -166,6 +176,9 @@ def diagnose(t_s, u_v, y_mm, *, model=None, config: DiagnosisConfig | None = Non
         if fitted is None:
             break
         say(f"round {number}: accepted {rnd.accepted}")
+        refined = CANDIDATES[rnd.accepted].refine(current, rec, given)
+        if refined:
+            d.rounds[-1] = _with_params(rnd, refined)
         current = fitted.model
         names.remove(rnd.accepted)
     d.model_after = current
