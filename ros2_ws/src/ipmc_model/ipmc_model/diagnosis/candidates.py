@@ -314,9 +314,7 @@ def creep_profile(before: GeneralizedPI, rec: DiagnosisRecord, n_taus: int = 9) 
         curv = (a - 2 * b + c) / step ** 2
         centre = x[k] + 0.5 * step * (a - c) / (a - 2 * b + c)
         half = math.sqrt(chi2.ppf(0.95, 1) / (0.5 * curv))
-        return {"tau_s": float(np.exp(centre)),
-                "tau_ci_s": [float(np.exp(centre - half)), float(np.exp(centre + half))],
-                "tau_interval": "profile of refits"}
+        return _tau_and_gain(x, fits, centre, (centre - half, centre + half))
     ends = []
     for side in (range(k, -1, -1), range(k, n_taus)):   # an end at the grid's edge: open
         idx = list(side)
@@ -326,8 +324,19 @@ def creep_profile(before: GeneralizedPI, rec: DiagnosisRecord, n_taus: int = 9) 
                 end = float(x[i] + (x[j] - x[i]) * -excess[i] / (excess[j] - excess[i]))
                 break
         ends.append(end)
-    return {"tau_s": float(grid[k]), "tau_ci_s": [float(np.exp(ends[0])), float(np.exp(ends[1]))],
-            "tau_interval": "profile of refits"}
+    return _tau_and_gain(x, fits, float(x[k]), tuple(ends))
+
+
+def _tau_and_gain(log_grid: np.ndarray, fits: list, centre: float, ends: tuple) -> dict:
+    """tau (s) at ``centre`` with the interval ``ends`` (log s), and the refits' creep gain
+    (mm/V) there with its range over the interval (the gain's interval given tau's)."""
+    gains = np.array([m.output_coef_[-1] for m in fits])
+    inside = np.interp(np.linspace(ends[0], ends[1], 25), log_grid, gains)
+    return {"tau_s": float(np.exp(centre)),
+            "tau_ci_s": [float(np.exp(ends[0])), float(np.exp(ends[1]))],
+            "gain_mm_per_v": float(np.interp(centre, log_grid, gains)),
+            "gain_ci_mm_per_v": [float(inside.min()), float(inside.max())],
+            "interval": "profile of refits"}
 
 
 def _creep_params(m: GeneralizedPI, taus, rec: DiagnosisRecord) -> dict:
