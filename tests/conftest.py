@@ -192,3 +192,15 @@ def spin():
 def call():
     """The :func:`call_service` helper, as a fixture."""
     return call_service
+
+
+def bag_commands_v(bag) -> list[float]:
+    """The ``/ipmc/command`` voltages of a rosbag2 folder, in the order recorded."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    with Reader(bag) as reader:
+        conns = [c for c in reader.connections if c.topic == "/ipmc/command"]
+        return [store.deserialize_cdr(raw, c.msgtype).data
+                for c, _, raw in reader.messages(connections=conns)]

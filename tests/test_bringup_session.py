@@ -17,8 +17,7 @@ import pytest
 from ipmc_control.excitation import make_excitation
 
 rclpy = pytest.importorskip("rclpy")
-from rosbags.rosbag2 import Reader  # noqa: E402
-from rosbags.typesys import Stores, get_typestore  # noqa: E402
+from conftest import bag_commands_v  # noqa: E402
 
 VENV_BIN = Path(sys.executable).parent
 RUN_TIMEOUT_S = 50.0
@@ -34,15 +33,6 @@ def _bringup(processes, name: str, *argv: str) -> str:
     out = processes.log(name)
     assert proc.returncode == 0, out
     return out
-
-
-def _commands_v(bag: Path) -> np.ndarray:
-    """The /ipmc/command voltages of a bag, in the order recorded."""
-    store = get_typestore(Stores.ROS2_JAZZY)
-    with Reader(bag) as reader:
-        conns = [c for c in reader.connections if c.topic == "/ipmc/command"]
-        return np.array([store.deserialize_cdr(raw, c.msgtype).data
-                         for c, _, raw in reader.messages(connections=conns)])
 
 
 def _played(commands_v: np.ndarray, u_v: np.ndarray) -> bool:
@@ -61,7 +51,7 @@ def test_excite_records_the_excitation_with_its_holds_and_stops_at_its_end(proce
     out = _bringup(processes, "bringup", "--sim", "--excite", "steps", "--seconds", "12",
                    "--hold-s", "3", "--record", str(bag))
     exc = make_excitation("steps", hold_s=3.0, seconds=12.0)
-    assert _played(_commands_v(bag), exc.u_v), out
+    assert _played(np.array(bag_commands_v(bag)), exc.u_v), out
     record = load_record(bag)                 # what ipmc identify --data reads
     holds = find_holds(record.u_v, 0.01, 2.5)
     assert len(holds) >= 3, out
@@ -84,7 +74,7 @@ def test_experiment_of_ipmc_diagnose_plays_open_loop_in_lockstep(processes, tmp_
     bag = tmp_path / "day2"
     out = _bringup(processes, "bringup", "--sim", "--lockstep", "--experiment", str(path),
                    "--record", str(bag))
-    assert _played(_commands_v(bag), u), out
+    assert _played(np.array(bag_commands_v(bag)), u), out
     assert "14 s at 100 Hz" in out and "3 holds" in out
     # lock-step: the record is the excitation, with the plant's first sample before it and
     # the 0 V after it, and nothing more (the plant waits once the excitation has ended)

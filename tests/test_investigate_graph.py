@@ -16,18 +16,9 @@ import numpy as np
 import pytest
 
 rclpy = pytest.importorskip("rclpy")
-from rosbags.rosbag2 import Reader  # noqa: E402
-from rosbags.typesys import Stores, get_typestore  # noqa: E402
+from conftest import bag_commands_v  # noqa: E402
 
 VENV_BIN = Path(sys.executable).parent
-
-
-def _commands_v(bag: Path) -> np.ndarray:
-    store = get_typestore(Stores.ROS2_JAZZY)
-    with Reader(bag) as reader:
-        conns = [c for c in reader.connections if c.topic == "/ipmc/command"]
-        return np.array([store.deserialize_cdr(raw, c.msgtype).data
-                         for c, _, raw in reader.messages(connections=conns)])
 
 
 def _investigate(processes, report: Path, *argv: str):
@@ -79,7 +70,7 @@ def test_ctrl_c_stops_the_graph_at_0_v_and_keeps_the_record(processes, tmp_path)
     summary = json.loads((report / "summary.json").read_text())
     assert summary["interrupted"] and summary["rounds"] == []
     assert summary["stopped_because"].startswith("interrupted during round 1")
-    assert _commands_v(bag)[-1] == 0.0
+    assert np.array(bag_commands_v(bag))[-1] == 0.0
     assert len(load_record(bag)) > 100
 
 
