@@ -22,7 +22,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 from threadpoolctl import threadpool_limits
 
 from ipmc_control.investigate import (
@@ -73,10 +72,10 @@ def smooth_input(rate_hz: float, seed: int, out_dir: Path) -> PlannedInput:
 def describe_params(name: str, p: dict) -> str:
     """An accepted effect's parameters in the plant's terms."""
     if name == "creep":
-        taus, gains = np.asarray(p["taus_s"], float), np.asarray(p["gains_mm_per_v"], float)
-        mean_tau = float(gains @ taus / gains.sum())
-        return (f"creep taus {taus.tolist()} s gains {np.round(gains, 4).tolist()} mm/V (sum "
-                f"{gains.sum():.3f} mm/V, gain-weighted tau {mean_tau:.1f} s)")
+        (lo, hi), (glo, ghi) = p["tau_ci_s"], p["gain_ci_mm_per_v"]
+        return (f"creep tau {p['tau_s']:.1f} s (95 % {lo:.1f}-{hi:.1f}), gain "
+                f"{p['gain_mm_per_v']:.4f} mm/V (95 % {glo:.4f} to {ghi:.4f}); bank taus "
+                f"{p['taus_s']} s")
     if name == "delay":
         return f"delay {p['delay_s']:.3f} s"
     if name == "dead_zone":
