@@ -222,12 +222,15 @@ def run_command(bench: Bench, argv: list[str], label: str) -> Step:
 
 
 def tell(step: Step, tail_lines: int = 4) -> None:
-    """Print a step: its command, wall time and exit code, and its last lines."""
+    """Print a step: its command, wall time and exit code, the load average (a loaded machine
+    starves the real-time loop), and its last lines."""
     shown = " ".join(shlex.quote(a) for a in [("ipmc" if a == IPMC else a) for a in step.argv])
     if step.skipped:
         print(f"skipped  {shown}\n  reason: {step.skipped}", flush=True)
         return
     print(f"{step.wall_s:7.1f} s  {shown}  (exit {step.returncode})", flush=True)
+    print(f"    load average after it: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores",
+          flush=True)
     lines = [ln for ln in step.output.splitlines()
              if ln.strip() and not re.match(r"\s*[\d.]+ s: ", ln)]
     for line in lines[-tail_lines:]:
@@ -324,15 +327,19 @@ def named_effects(summary: dict) -> list[str]:
     names = list(summary.get("effects_found", []))
     names += [f"{c['name']} undecided" for c in summary.get("candidates", [])
               if "undecided" in c.get("reason", "")]
+    names += [f"{name} undecided" for name in summary.get("undecided", [])]  # investigate's
     return names
+
+
+def creep_candidate(summary: dict) -> dict:
+    """The creep candidate of a diagnosis, accepted or not (empty when absent)."""
+    return next((c for c in summary.get("candidates", []) if c["name"] == "creep"), {})
 
 
 def creep_params(summary: dict) -> dict:
     """The accepted creep's parameters in the diagnosis (empty when none)."""
-    for cand in summary.get("candidates", []):
-        if cand["name"] == "creep" and cand.get("accepted"):
-            return (cand.get("evidence") or {}).get("params", {})
-    return {}
+    cand = creep_candidate(summary)
+    return (cand.get("evidence") or {}).get("params", {}) if cand.get("accepted") else {}
 
 
 def hold_with_creep_undone(bench: Bench, commands: list[str]) -> tuple[Step | None, Step | None]:
@@ -410,21 +417,35 @@ def report_tracking(bench: Bench, readme_steps: list[Step]) -> None:
             print(f"  bag: {bag_tracking(bench.workdir / option(step.argv, '--record'))}")
 
 
+def rounded(values: list[float] | None, digits: int) -> list[float] | None:
+    return None if values is None else [round(float(v), digits) for v in values]
+
+
+def report_creep(summary: dict) -> None:
+    """Day 2 with creep: what is named, the creep candidate's parameters and intervals
+    (accepted or not), and whether creep is named with the emulator's tau in its interval."""
+    cand = creep_candidate(summary)
+    p = (cand.get("evidence") or {}).get("params", {})
+    print(f"day 2 with creep names: {named_effects(summary) or 'nothing'}")
+    if cand:
+        print(f"  creep candidate {cand.get('outcome')}: {cand.get('reason')}")
+    tau_ci = p.get("tau_ci_s")
+    if p:
+        print(f"  creep tau {p.get('tau_s', float('nan')):.1f} s, 95 % interval "
+              f"{rounded(tau_ci, 1)} s; gain {p.get('gain_mm_per_v', float('nan')):.4f} mm/V, "
+              f"interval {rounded(p.get('gain_ci_mm_per_v'), 4)}; taus "
+              f"{rounded(p.get('taus_s'), 1)} s, gains {rounded(p.get('gains_mm_per_v'), 4)} mm/V")
+    tau_ok = bool(tau_ci) and tau_ci[0] <= EMULATOR_CREEP_TAU_S <= tau_ci[1]
+    print(f"  creep named, its interval holding the emulator's tau {EMULATOR_CREEP_TAU_S:g} s: "
+          f"{verdict(bool(cand.get('accepted')) and tau_ok)} (interval holds it: "
+          f"{'yes' if tau_ok else 'no'})")
+
+
 def report_day2(creep: dict, drift: dict, holds: tuple[Step | None, Step | None]) -> None:
     """Day 2's figures: creep named with tau in its interval, the hold with the creep undone,
     drift named."""
     if creep:
-        p = creep_params(creep)
-        print(f"day 2 with creep names: {named_effects(creep) or 'nothing'}")
-        tau_ci = p.get("tau_ci_s")
-        tau_ok = bool(tau_ci) and tau_ci[0] <= EMULATOR_CREEP_TAU_S <= tau_ci[1]
-        if p:
-            print(f"  creep tau {p.get('tau_s', float('nan')):.1f} s, 95 % interval "
-                  f"{tau_ci} s; gain {p.get('gain_mm_per_v', float('nan')):.4f} mm/V, "
-                  f"interval {p.get('gain_ci_mm_per_v')}; taus {p.get('taus_s')} s gains "
-                  f"{p.get('gains_mm_per_v')} mm/V")
-        print(f"  creep named, its interval holding the emulator's tau "
-              f"{EMULATOR_CREEP_TAU_S:g} s: {verdict(bool(p) and tau_ok)}")
+        report_creep(creep)
     before, after = (tracking_rmse_mm(s) for s in holds)
     if before is not None:
         shown = "not run" if after is None else f"{after:.4f} mm"
@@ -437,14 +458,18 @@ def report_day2(creep: dict, drift: dict, holds: tuple[Step | None, Step | None]
 
 
 def report_clean(workdir: Path) -> None:
-    """What the clean days' diagnoses name (goal: nothing, in the data or otherwise)."""
-    for report in ("day1_report", "day2_report"):
+    """What the clean days' diagnoses and the investigation on the clean emulator name (goal:
+    nothing, in the data or otherwise)."""
+    for report in ("day1_report", "day2_report", "inv"):
         path = workdir / report / "summary.json"
         if not path.exists():
             print(f"clean {report}: not written")
             continue
         names = named_effects(json.loads(path.read_text()))
-        print(f"clean {report} names: {names or 'nothing'}: {verdict(not names)}")
+        found = [n for n in names if not n.endswith(" undecided")]
+        undecided = [n for n in names if n.endswith(" undecided")]
+        print(f"clean {report}: effects found {found or 'none'}: {verdict(not found)}; "
+              f"left undecided (untested, not claimed): {undecided or 'none'}")
 
 
 def report_time(readme_steps: list[Step], all_steps: list[Step]) -> None:
