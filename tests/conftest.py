@@ -204,3 +204,10 @@ def bag_commands_v(bag) -> list[float]:
         conns = [c for c in reader.connections if c.topic == "/ipmc/command"]
         return [store.deserialize_cdr(raw, c.msgtype).data
                 for c, _, raw in reader.messages(connections=conns)]
+
+
+@pytest.fixture
+def commands_v():
+    """:func:`bag_commands_v`, as a fixture (test modules cannot import this conftest by
+    name: the package test folders have conftest modules of their own)."""
+    return bag_commands_v

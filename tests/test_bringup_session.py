@@ -17,7 +17,6 @@ import pytest
 from ipmc_control.excitation import make_excitation
 
 rclpy = pytest.importorskip("rclpy")
-from conftest import bag_commands_v  # noqa: E402
 
 VENV_BIN = Path(sys.executable).parent
 RUN_TIMEOUT_S = 50.0
@@ -42,7 +41,7 @@ def _played(commands_v: np.ndarray, u_v: np.ndarray) -> bool:
                and np.allclose(commands_v[k:k + u_v.size], u_v, atol=1e-9) for k in starts)
 
 
-def test_excite_records_the_excitation_with_its_holds_and_stops_at_its_end(processes,
+def test_excite_records_the_excitation_with_its_holds_and_stops_at_its_end(commands_v, processes,
                                                                            tmp_path):
     from ipmc_driver.dataio import load_record
     from ipmc_model.residuals import find_holds
@@ -51,7 +50,7 @@ def test_excite_records_the_excitation_with_its_holds_and_stops_at_its_end(proce
     out = _bringup(processes, "bringup", "--sim", "--excite", "steps", "--seconds", "12",
                    "--hold-s", "3", "--record", str(bag))
     exc = make_excitation("steps", hold_s=3.0, seconds=12.0)
-    assert _played(np.array(bag_commands_v(bag)), exc.u_v), out
+    assert _played(np.array(commands_v(bag)), exc.u_v), out
     record = load_record(bag)                 # what ipmc identify --data reads
     holds = find_holds(record.u_v, 0.01, 2.5)
     assert len(holds) >= 3, out
@@ -65,7 +64,7 @@ def test_excite_records_the_excitation_with_its_holds_and_stops_at_its_end(proce
         "excitation.log", "recorder.log", "sim_plant.log"]
 
 
-def test_experiment_of_ipmc_diagnose_plays_open_loop_in_lockstep(processes, tmp_path):
+def test_experiment_of_ipmc_diagnose_plays_open_loop_in_lockstep(commands_v, processes, tmp_path):
     from ipmc_model.diagnosis.experiment import Experiment, holds
 
     u = np.concatenate([holds([1.5, -2.0, 0.5], 4.0, 100.0), np.zeros(200)])
@@ -74,7 +73,7 @@ def test_experiment_of_ipmc_diagnose_plays_open_loop_in_lockstep(processes, tmp_
     bag = tmp_path / "day2"
     out = _bringup(processes, "bringup", "--sim", "--lockstep", "--experiment", str(path),
                    "--record", str(bag))
-    assert _played(np.array(bag_commands_v(bag)), u), out
+    assert _played(np.array(commands_v(bag)), u), out
     assert "14 s at 100 Hz" in out and "3 holds" in out
     # lock-step: the record is the excitation, with the plant's first sample before it and
     # the 0 V after it, and nothing more (the plant waits once the excitation has ended)

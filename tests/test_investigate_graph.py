@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 
 rclpy = pytest.importorskip("rclpy")
-from conftest import bag_commands_v  # noqa: E402
 
 VENV_BIN = Path(sys.executable).parent
 
@@ -48,7 +47,7 @@ def test_a_round_through_the_lockstep_graph_is_recorded_and_diagnosed(processes,
 
 
 @pytest.mark.timeout(120)
-def test_ctrl_c_stops_the_graph_at_0_v_and_keeps_the_record(processes, tmp_path):
+def test_ctrl_c_stops_the_graph_at_0_v_and_keeps_the_record(commands_v, processes, tmp_path):
     from ipmc_driver.dataio import load_record
 
     report = tmp_path / "inv"
@@ -70,7 +69,7 @@ def test_ctrl_c_stops_the_graph_at_0_v_and_keeps_the_record(processes, tmp_path)
     summary = json.loads((report / "summary.json").read_text())
     assert summary["interrupted"] and summary["rounds"] == []
     assert summary["stopped_because"].startswith("interrupted during round 1")
-    assert np.array(bag_commands_v(bag))[-1] == 0.0
+    assert np.array(commands_v(bag))[-1] == 0.0
     assert len(load_record(bag)) > 100
 
 
