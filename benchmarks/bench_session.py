@@ -518,7 +518,10 @@ def main(argv: list[str] | None = None) -> int:
     workdir.mkdir(parents=True, exist_ok=True)
     bench = Bench(workdir.resolve(), args.short, child_env())
     print(f"working in {bench.workdir} ({'short' if args.short else 'full'} lengths)", flush=True)
+    # SIGTERM, and SIGINT even where a shell started this in the background with it ignored,
+    # stop everything started here through the KeyboardInterrupt path.
     signal.signal(signal.SIGTERM, signal.default_int_handler)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         run_all(bench, commands, not args.no_day2)
     except KeyboardInterrupt:
