@@ -515,7 +515,7 @@ class GeneralizedPI:
         if self.cv_.alpha != alpha:
             x = self._joint_fit(u, y, x, bounds, self.cv_.alpha, nfev)
         self._unpack(x)
-        self._say(f"fitted on from the learned parameters: CV free-run RMSE "
+        self._say(f"refitted on this record from the parameters learned before: CV free-run RMSE "
                   f"{min(self.cv_.rmse):.4g} ({time.perf_counter() - t0:.1f} s)")
         self.train_rmse_ = float(np.sqrt(np.mean((self.simulate(u) - y) ** 2)))
         self.fit_seconds_ = time.perf_counter() - t0
