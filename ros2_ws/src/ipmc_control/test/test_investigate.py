@@ -204,8 +204,10 @@ def test_creep_hidden_by_a_random_sine_is_named_after_the_proposed_experiment(cr
     assert len(probes) == 2 and all("holds of" in p["reason"] for p in probes)
     assert second["undecided"] == ["creep"] and second["decided"]["creep"] == "accepted"
     assert creep_run["effects_found"] == ["creep"] and creep_run["undecided"] == []
-    gains = second["params"]["creep"]["gains_mm_per_v"]
-    assert -0.2 < sum(gains) < -0.07          # the plant's creep: -0.12 mm per V of charge
+    creep = second["params"]["creep"]   # the plant's creep: 20 s, -0.12 mm per V of charge
+    lo, hi = creep["tau_ci_s"]
+    assert lo < 20.0 < hi and hi < 60.0
+    assert -0.2 < creep["gain_mm_per_v"] < -0.07
     assert second["rmse_after_mm"] < 0.5 * second["rmse_before_mm"]
     assert (creep_run["dir"] / "round_2" / "record.csv").is_file()
     assert Path(creep_run["model_after"]).is_file()

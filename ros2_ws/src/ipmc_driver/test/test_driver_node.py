@@ -131,7 +131,9 @@ def test_stamps_from_counter_and_dropped_samples(graph):
     driver, rig = graph
     rig.wait(lambda: driver.link.state == "connected")
     geo = ArcGeometry()
-    for counter in (100, 101, 102, 105, 106):
+    t0 = time.monotonic()
+    for counter in (100, 101, 102, 105, 106):   # each sent at its instant (103, 104 lost)
+        time.sleep(max(0.0, t0 + (counter - 100) * PERIOD_NS * 1e-9 - time.monotonic()))
         rig.send(Sample(counter, 0.5, geo.reading(-counter * 0.01)))
     rig.wait(lambda: len(rig.disp) == 5 and len(rig.volt) == 5)
     stamps = [s for s, _ in rig.disp]
