@@ -127,14 +127,21 @@ class Rig:
             self.spin(0.02)
 
 
+def send_at_instants(rig, samples) -> None:
+    """Send each sample when the rig takes it (its counter's period after the first): sent
+    all at once they would be a buffered burst, which the driver re-anchors."""
+    t0, first = time.monotonic(), samples[0].counter
+    for sample in samples:
+        time.sleep(max(0.0, t0 + (sample.counter - first) * PERIOD_NS * 1e-9 - time.monotonic()))
+        rig.send(sample)
+
+
 def test_stamps_from_counter_and_dropped_samples(graph):
     driver, rig = graph
     rig.wait(lambda: driver.link.state == "connected")
     geo = ArcGeometry()
-    t0 = time.monotonic()
-    for counter in (100, 101, 102, 105, 106):   # each sent at its instant (103, 104 lost)
-        time.sleep(max(0.0, t0 + (counter - 100) * PERIOD_NS * 1e-9 - time.monotonic()))
-        rig.send(Sample(counter, 0.5, geo.reading(-counter * 0.01)))
+    send_at_instants(rig, [Sample(c, 0.5, geo.reading(-c * 0.01))  # 103, 104 lost
+                           for c in (100, 101, 102, 105, 106)])
     rig.wait(lambda: len(rig.disp) == 5 and len(rig.volt) == 5)
     stamps = [s for s, _ in rig.disp]
     assert [s - stamps[0] for s in stamps] == [0, 1 * PERIOD_NS, 2 * PERIOD_NS, 5 * PERIOD_NS,
@@ -154,11 +161,11 @@ def test_out_of_range_readings_counted_not_published(graph):
     driver, rig = graph
     rig.wait(lambda: driver.link.state == "connected")
     lo, hi = ArcGeometry().reading_range_mm
-    rig.send(Sample(1, 0.0, 150.0))
-    rig.send(Sample(2, 0.0, hi + 1.0))  # beyond Eq. 1's range
-    rig.send(Sample(3, 0.0, None))  # the sensor saw no target
-    rig.send(Sample(4, 0.0, lo))  # the open end of the range
-    rig.send(Sample(5, 0.0, 151.0))
+    send_at_instants(rig, [Sample(1, 0.0, 150.0),
+                           Sample(2, 0.0, hi + 1.0),  # beyond Eq. 1's range
+                           Sample(3, 0.0, None),  # the sensor saw no target
+                           Sample(4, 0.0, lo),  # the open end of the range
+                           Sample(5, 0.0, 151.0)])
     rig.wait(lambda: len(rig.disp) == 2)
     rig.spin(0.1)
     assert len(rig.disp) == len(rig.volt) == 2
