@@ -26,7 +26,6 @@ from threadpoolctl import threadpool_limits
 
 from ipmc_control.investigate import (
     InProcessRunner,
-    InputPart,
     Investigation,
     PlannedInput,
     first_input,
@@ -35,6 +34,7 @@ from ipmc_control.investigate import (
 )
 from ipmc_control.investigate_report import write_investigation
 from ipmc_model.diagnosis import diagnose  # scipy's BLAS loaded before the thread limit
+from ipmc_model.diagnosis.experiment import ExperimentPart
 
 SECONDS = 120.0
 
@@ -63,7 +63,7 @@ def smooth_input(rate_hz: float, seed: int, out_dir: Path) -> PlannedInput:
     u = random_sine(SECONDS, rate_hz, 3.0, band_hz=(0.02, 0.3), seed=seed)[1]
     out_dir.mkdir(parents=True, exist_ok=True)
     path = save_csv(Excitation(u, rate_hz, "smooth"), out_dir / "input.csv")
-    part = InputPart("first input: smooth random sine", "", 0.0, SECONDS,
+    part = ExperimentPart("first input: smooth random sine", "", 0.0, SECONDS,
                      "random sum of sines over 0.02-0.3 Hz, +-3 V")
     return PlannedInput(u, rate_hz, path, f"first input: smooth random sine, {SECONDS:g} s",
                         (part,))

@@ -129,6 +129,25 @@ def processes(ros_env, tmp_path):
     procs.stop_all()
 
 
+@pytest.fixture
+def rig_emulator(processes, tmp_path):
+    """The rig emulator on a pty (``python -m ipmc_driver.emulator --link``): yields the process
+    (its stdin takes the emulator's commands, e.g. ``unplug 1.0``) and the pty's path; stopped
+    with SIGINT at the end, killed if it does not exit within 5 s."""
+    emu = subprocess.Popen([sys.executable, "-m", "ipmc_driver.emulator", "--link",
+                            str(tmp_path / "ttyRIG")], env=processes.env,
+                           stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
+    try:
+        yield emu, emu.stdout.readline().strip()
+    finally:
+        emu.send_signal(signal.SIGINT)
+        try:
+            emu.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            emu.kill()
+            emu.wait()
+
+
 @pytest.fixture(scope="session")
 def rclpy_context(ros_env):
     """An rclpy context of this test process, in the session's domain."""

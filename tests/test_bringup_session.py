@@ -5,7 +5,6 @@ progress and summary. Real processes over DDS on the session's domain."""
 from __future__ import annotations
 
 import json
-import signal
 import subprocess
 import sys
 import time
@@ -152,24 +151,14 @@ def _unplug_during(processes, emu, argv: list[str]) -> str:
     return out
 
 
-def test_rig_run_shows_the_link_state_and_its_fault_on_the_console(processes, tmp_path):
+def test_rig_run_shows_the_link_state_and_its_fault_on_the_console(processes, rig_emulator,
+                                                                  tmp_path):
     """Through the rig emulator's pty and the driver: the progress names the link's state, the
     driver's warning of a lost link reaches the console as it happens, the summary counts it."""
-    emu = subprocess.Popen([sys.executable, "-m", "ipmc_driver.emulator", "--link",
-                            str(tmp_path / "ttyRIG")], env=processes.env,
-                           stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
-    try:
-        port = emu.stdout.readline().strip()
-        out = _unplug_during(processes, emu, [
-            "--rig", port, "--excite", "steps", "--seconds", "12", "--hold-s", "3",
-            "--record", str(tmp_path / "rig")])
-    finally:
-        emu.send_signal(signal.SIGINT)
-        try:
-            emu.wait(timeout=5.0)
-        except subprocess.TimeoutExpired:
-            emu.kill()
-            emu.wait()
+    emu, port = rig_emulator
+    out = _unplug_during(processes, emu, [
+        "--rig", port, "--excite", "steps", "--seconds", "12", "--hold-s", "3",
+        "--record", str(tmp_path / "rig")])
     assert "link connected" in out.split("excitation finished")[0]
     assert "[driver] [WARN]" in out and "lost" in out, out
     summary = out[out.index("summary:"):]

@@ -81,25 +81,14 @@ def test_ctrl_c_stops_the_graph_at_0_v_and_keeps_the_record(commands_v, processe
 
 
 @pytest.mark.timeout(150)
-def test_a_round_on_the_emulated_rig_through_the_driver(processes, tmp_path):
+def test_a_round_on_the_emulated_rig_through_the_driver(processes, rig_emulator, tmp_path):
     """--rig on the rig emulator's pty: the driver streams the record in real time."""
-    emu = subprocess.Popen([sys.executable, "-m", "ipmc_driver.emulator", "--link",
-                            str(tmp_path / "ttyRIG")], env=processes.env,
-                           stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1)
-    try:
-        port = emu.stdout.readline().strip()
-        report = tmp_path / "inv"
-        proc = processes.start("investigate", [
-            str(VENV_BIN / "ipmc"), "investigate", "--rig", port, "--first-seconds", "30",
-            "--budget-min", "0.6", "--report", str(report)])
-        proc.wait(timeout=120)
-    finally:
-        emu.send_signal(signal.SIGINT)
-        try:
-            emu.wait(timeout=5.0)
-        except subprocess.TimeoutExpired:
-            emu.kill()
-            emu.wait()
+    _, port = rig_emulator
+    report = tmp_path / "inv"
+    proc = processes.start("investigate", [
+        str(VENV_BIN / "ipmc"), "investigate", "--rig", port, "--first-seconds", "30",
+        "--budget-min", "0.6", "--report", str(report)])
+    proc.wait(timeout=120)
     out = processes.log("investigate")
     assert proc.returncode == 0, out
     summary = json.loads((report / "summary.json").read_text())

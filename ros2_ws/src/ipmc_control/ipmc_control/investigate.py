@@ -43,6 +43,8 @@ from typing import Protocol
 
 import numpy as np
 
+from ipmc_model.diagnosis.experiment import ExperimentPart
+
 #: Length of the first excitation (s): the diagnosis's fit part (70 %) then spans 84 s, three
 #: time constants of a 12 s creep, the slowest relaxation it can then fit as a rival and size
 #: the deciding holds by.
@@ -59,17 +61,6 @@ STOP_GRACE_S = 30.0
 
 
 @dataclass(frozen=True)
-class InputPart:
-    """A stretch of an input and why it is there."""
-
-    name: str
-    effect: str
-    start_s: float
-    duration_s: float
-    reason: str
-
-
-@dataclass(frozen=True)
 class PlannedInput:
     """What one round plays: voltages ``u_v`` (V) at ``rate_hz``, the file that holds them (the
     graph plays it), what it is, its parts and the effects it is designed to decide."""
@@ -78,7 +69,7 @@ class PlannedInput:
     rate_hz: float
     path: Path
     label: str
-    parts: tuple[InputPart, ...]
+    parts: tuple[ExperimentPart, ...]
     decides: tuple[str, ...] = ()
 
     @property
@@ -213,7 +204,7 @@ def first_input(kind: str, *, seconds: float, rate_hz: float, amplitude_v: float
            "steps": "held levels across the range: settling after each step",
            "mixed": "random sines, slow sines and short levels, then input holds at levels "
                     "spanning the range"}[kind]
-    part = InputPart(f"first input: {kind}", "", 0.0, exc.duration_s,
+    part = ExperimentPart(f"first input: {kind}", "", 0.0, exc.duration_s,
                      f"{why}; +-{amplitude_v:g} V")
     return PlannedInput(exc.u_v, exc.rate_hz, path, f"first input: {kind}, "
                         f"{exc.duration_s:.0f} s", (part,))
@@ -225,8 +216,7 @@ def experiment_input(experiment, out_dir: Path, after_round: int) -> PlannedInpu
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "experiment.json"
     path.write_text(json.dumps(experiment.as_dict()) + "\n")
-    parts = tuple(InputPart(p.name, p.effect, p.start_s, p.duration_s, p.reason)
-                  for p in experiment.parts)
+    parts = tuple(experiment.parts)
     return PlannedInput(np.asarray(experiment.u_v, dtype=float), float(experiment.rate_hz),
                         path, f"the experiment round {after_round} proposed, "
                         f"{experiment.duration_s:.0f} s", parts, tuple(experiment.decides))

@@ -8,7 +8,9 @@ import math
 import os
 from pathlib import Path
 
-from .investigate import InputPart, Investigation, InvestigationRound
+from ipmc_model.diagnosis.experiment import ExperimentPart
+
+from .investigate import Investigation, InvestigationRound
 
 METRIC = ("free-run RMSE (mm) on a record's held-out last 30 %, the model run from the "
           "record's start on its input alone; before: the first round's starting model on "
@@ -45,7 +47,7 @@ def _json_safe(o):
     return _num(o) if isinstance(o, float) else o
 
 
-def _part(p: InputPart) -> dict:
+def _part(p: ExperimentPart) -> dict:
     return {"name": p.name, "effect": p.effect, "start_s": p.start_s,
             "duration_s": p.duration_s, "reason": p.reason}
 

@@ -23,16 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from ipmc_control.pid import ControlParameterError
-from ipmc_control.references import KINDS, Reference, make_reference
+from ipmc_control.references import KIND_PARAMS, KINDS, Reference, make_reference
 
-#: Which reference parameters each kind takes (as the ``reference`` node names them).
-KIND_PARAMS = {
-    "constant": ("value_mm",),
-    "sine": ("amplitude_mm", "frequency_hz", "offset_mm", "phase_rad"),
-    "random": ("band_hz", "range_mm", "n_components", "period_s", "seed"),
-    "steps": ("levels_mm", "hold_s", "repeat"),
-    "file": ("path", "repeat"),
-}
 HELD_KINDS = ("constant", "steps")
 #: What sets the span of each kind, as a user would change it.
 SETTING = {"constant": "value_mm", "sine": "amplitude_mm", "random": "range_mm",

@@ -26,6 +26,14 @@ import numpy as np
 from .pid import ControlParameterError, check_parameter
 
 KINDS = ("constant", "sine", "random", "steps", "file")
+#: Which parameters each kind takes (as the ``reference`` node and ``ipmc bringup`` name them).
+KIND_PARAMS = {
+    "constant": ("value_mm",),
+    "sine": ("amplitude_mm", "frequency_hz", "offset_mm", "phase_rad"),
+    "random": ("band_hz", "range_mm", "n_components", "period_s", "seed"),
+    "steps": ("levels_mm", "hold_s", "repeat"),
+    "file": ("path", "repeat"),
+}
 
 
 class Reference:

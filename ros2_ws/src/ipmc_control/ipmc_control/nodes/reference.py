@@ -38,7 +38,7 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 from ipmc_control.pid import ControlParameterError
-from ipmc_control.references import KINDS, Reference, make_reference
+from ipmc_control.references import KIND_PARAMS, KINDS, Reference, make_reference
 from ipmc_driver.matching import MatchGate
 from ipmc_driver.node_runtime import (
     ParameterSpec,
@@ -106,13 +106,6 @@ PARAMETERS = {
         "subscriptions (and every one the graph shows, at most 5 s)", True, non_negative),
     "kind": ParameterSpec("sine", " | ".join(KINDS), check=one_of(*KINDS)),
     **GENERATOR_PARAMS,
-}
-KIND_PARAMS = {
-    "constant": ("value_mm",),
-    "sine": ("amplitude_mm", "frequency_hz", "offset_mm", "phase_rad"),
-    "random": ("band_hz", "range_mm", "n_components", "period_s", "seed"),
-    "steps": ("levels_mm", "hold_s", "repeat"),
-    "file": ("path", "repeat"),
 }
 
 
