@@ -194,14 +194,15 @@ def test_track_with_the_creep_undone_holds_closer(creep_feedforwards, tmp_path, 
     assert "--effects-from" in capsys.readouterr().err
 
 
-def graph_and_in_process(model_file, ros_env, tmp_path, timeout_s):
-    """The sine hybrid of ``model_file`` in process and with --graph: (in-process JSON, graph
-    JSON, the graph run's CompletedProcess)."""
+def graph_and_in_process(model_file, ros_env, tmp_path, timeout_s, record=None):
+    """The sine hybrid of ``model_file`` in process and with --graph (its bag kept at
+    ``record`` if given): (in-process JSON, graph JSON, the graph run's CompletedProcess)."""
     common = ["--model", str(model_file), "--reference", "sine", "--mode", "hybrid",
               "--seconds", str(GRAPH_S)]
     inproc, graph = tmp_path / "inproc.json", tmp_path / "graph.json"
     assert track_main([*common, "--json", str(inproc)]) == 0
-    out = subprocess.run([str(VENV_BIN / "ipmc"), "track", *common, "--graph",
+    keep = ["--record", str(record)] if record else []
+    out = subprocess.run([str(VENV_BIN / "ipmc"), "track", *common, "--graph", *keep,
                           "--json", str(graph)], env=ros_env, capture_output=True, text=True,
                          timeout=timeout_s)
     assert out.returncode == 0, out.stderr[-3000:]
@@ -220,18 +221,23 @@ def graph_and_in_process(model_file, ros_env, tmp_path, timeout_s):
 
 
 def test_track_graph_agrees_with_in_process_within_10_percent(inverse_file, ros_env, tmp_path):
-    _, _, out = graph_and_in_process(inverse_file, ros_env, tmp_path, timeout_s=120)
+    """Without --record, a run without warnings leaves no bag or logs behind."""
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    _, _, out = graph_and_in_process(inverse_file, {**ros_env, "TMPDIR": str(scratch)},
+                                     tmp_path, timeout_s=120)
     assert "slow exits" not in out.stderr, out.stderr[-2000:]
+    assert list(scratch.iterdir()) == [], out.stderr[-2000:]
 
 
 def test_track_graph_with_forward_inversion_agrees_with_in_process(forward_file, ros_env,
                                                                    tmp_path):
     """model_server serves /ipmc/feedforward by inverting the forward model; the lock-step
     controller's hybrid loop is the in-process one."""
-    _, _, out = graph_and_in_process(forward_file, ros_env, tmp_path, timeout_s=150)
+    graph_and_in_process(forward_file, ros_env, tmp_path, timeout_s=150,
+                         record=tmp_path / "run")
     # model_server said which feedforward it served.
-    bag = Path(out.stderr.split("bag ")[-1].split()[0])
-    log = (bag.parent / "logs" / "model_server.log").read_text()
+    log = (tmp_path / "run_logs" / "model_server.log").read_text()
     assert "feedforward forward-model inversion" in log, log[-2000:]
 
 
@@ -240,10 +246,9 @@ def test_track_graph_with_the_creep_undone_agrees_with_in_process(creep_feedforw
     """An augmented model's feedforward (ipmc identify --inverse --effects-from) through the
     graph: model_server serves it as the inverse model, with the creep undone, and the
     lock-step hybrid loop is the in-process one."""
-    _, _, out = graph_and_in_process(creep_feedforwards["creep"], ros_env, tmp_path,
-                                     timeout_s=150)
-    bag = Path(out.stderr.split("bag ")[-1].split()[0])
-    log = (bag.parent / "logs" / "model_server.log").read_text()
+    graph_and_in_process(creep_feedforwards["creep"], ros_env, tmp_path, timeout_s=150,
+                         record=tmp_path / "run")
+    log = (tmp_path / "run_logs" / "model_server.log").read_text()
     assert "with the effects undone around it: creep" in log, log[-2000:]
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -138,9 +139,13 @@ def run_in_process(model, reference: str, mode: str, effects: list[str], duratio
 
 
 def run_graph(model_path: str | None, reference: str, mode: str, effects: list[str],
-              duration_s: float, *, log=sys.stderr, timeout_s: float | None = None) -> dict:
+              duration_s: float, *, log=sys.stderr, timeout_s: float | None = None,
+              record: Path | None = None) -> dict:
     """Run the experiment through sim_plant (lock-step), model_server, controller, reference
     and recorder as processes; return the summary computed from the recorded bag.
+
+    The bag is ``record`` and the nodes' logs ``record``'s name + ``_logs`` beside it; without
+    ``record`` both go to a temporary folder, removed after a run that printed no warning.
 
     A forward model with voltage channels as ``model_path`` is served by model_server as
     ``model_file`` with ``feedforward:=forward-inversion`` (``bringup.graph_specs``)."""
@@ -158,8 +163,9 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     env.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
-    work = Path(tempfile.mkdtemp(prefix="ipmc_track_"))
-    bag = work / "bag"
+    work = Path(tempfile.mkdtemp(prefix="ipmc_track_")) if record is None else None
+    bag = work / "bag" if work else Path(record)
+    logs = work / "logs" if work else bag.parent / f"{bag.name}_logs"
     specs = _probe_specs(model_path, reference, mode, effects, bag)
     timeout_s = timeout_s or 90.0 + 3.0 * duration_s
     context = rclpy.Context()
@@ -196,7 +202,7 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     t_wall = time.monotonic()
     stop = StopSignals()
     try:
-        with Graph(env, work / "logs") as graph:
+        with Graph(env, logs) as graph:
             plant_spec = _bring_up(graph, specs, node, spin_until, stop, mode)
             graph.start(plant_spec)
             print(f"graph up in {time.monotonic() - t_wall:.1f} s; running {duration_s:g} s "
@@ -211,10 +217,13 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
         node.destroy_node()
         rclpy.try_shutdown(context=context)
     stop.raise_if_signalled()    # one that came while the graph stopped at the end of the run
-    _warn_from_logs(work, mode, exits, log)
+    warned = _warn_from_logs(logs, mode, exits, log)
     summary, n = _summary_from_bag(bag, first_ref[0], duration_s)
-    print(f"graph run: {n} samples in {time.monotonic() - t_wall:.1f} s wall; "
-          f"bag {bag}", file=log)
+    kept = record is not None or warned
+    print(f"graph run: {n} samples in {time.monotonic() - t_wall:.1f} s wall"
+          + (f"; bag {bag}, logs {logs}" if kept else ""), file=log)
+    if not kept:
+        shutil.rmtree(work, ignore_errors=True)
     return summary
 
 
@@ -271,22 +280,24 @@ def _probe_specs(model_path, reference: str, mode: str, effects, bag: Path) -> l
     return specs
 
 
-def _warn_from_logs(work: Path, mode: str, exits: dict, log) -> None:
-    """Warnings of a graph run that is not the in-process loop sample for sample."""
+def _warn_from_logs(logs: Path, mode: str, exits: dict, log) -> bool:
+    """Warnings of a graph run that is not the in-process loop sample for sample; whether
+    there were any."""
     slow = {n: t for n, t in exits.items() if t > 2.0}
     if slow:
         print(f"warning: slow exits after SIGINT: {slow}", file=log)
-    fallbacks = _count_in_log(work / "logs" / "controller.log", "feedforward stale")
+    fallbacks = _count_in_log(logs / "controller.log", "feedforward stale")
     if fallbacks and mode != "pid":
         print(f"warning: the controller ran without the feedforward {fallbacks} time(s) (a node "
               f"stalled for more than {LOCKSTEP_WAIT_S:g} s of wall time): this run is not the "
-              "in-process loop sample for sample; see " + str(work / "logs"), file=log)
-    unanswered = _count_in_log(work / "logs" / "sim_plant.log", "lock-step: no command")
+              "in-process loop sample for sample; see " + str(logs), file=log)
+    unanswered = _count_in_log(logs / "sim_plant.log", "lock-step: no command")
     if unanswered:
         print(f"warning: the plant stepped on without its command (a node stalled for more than "
               f"{LOCKSTEP_WAIT_S:g} s of wall time; {unanswered} warning(s) in the plant's log): "
               "this run is not the in-process loop sample for sample; see "
-              + str(work / "logs"), file=log)
+              + str(logs), file=log)
+    return bool(slow or (fallbacks and mode != "pid") or unanswered)
 
 
 def _summary_from_bag(bag: Path, first_ref_ns: int, duration_s: float) -> tuple[dict, int]:
@@ -333,6 +344,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="switch on a simulated plant effect (e.g. creep; repeatable)")
     parser.add_argument("--seconds", type=float,
                         help="duration, s (default: 4 periods of the sine, 60 s otherwise)")
+    parser.add_argument("--record", metavar="BAG",
+                        help="with --graph: keep the run's bag here and the nodes' logs in "
+                             "BAG_logs beside it (default: a temporary folder, removed after "
+                             "a run without warnings)")
     parser.add_argument("--json", metavar="OUT", help="write the summary as JSON")
     parser.add_argument("--plot", metavar="PNG", help="in-process run: write a figure")
     args = parser.parse_args(argv)
@@ -342,6 +357,10 @@ def main(argv: list[str] | None = None) -> int:
 
         if args.json:
             check_output_file(args.json, option="--json", suffixes=(".json",))
+        if args.record and Path(args.record).exists():
+            raise ValueError(f"{args.record} exists already; a bag is never written over")
+        if args.record and not args.graph:
+            raise ValueError("--record keeps the bag of a graph run: add --graph")
         if args.plot:
             check_output_file(args.plot, option="--plot", suffixes=(".png", ".pdf", ".svg"))
         model = load_feedforward(args.model, args.mode)
@@ -350,7 +369,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"ipmc track: warning: {reach}", file=sys.stderr)
         if args.graph:
             summary = run_graph(args.model, args.reference, args.mode, args.plant_effect,
-                                duration)
+                                duration, record=Path(args.record) if args.record else None)
         else:
             result = run_in_process(model, args.reference, args.mode, args.plant_effect,
                                     duration)
