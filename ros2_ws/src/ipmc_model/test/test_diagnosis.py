@@ -117,6 +117,27 @@ def test_a_given_model_gets_the_block_of_what_changed_fitted_around_it():
     assert d.rmse_after_mm < 0.5 * d.rmse_before_mm
 
 
+def test_creep_around_a_given_model_with_slow_input_memory_is_one_relaxation():
+    """Another day's model of ipmc identify's default family (input memory up to 36 s):
+    creep that came since is still testable around it, fitted as one relaxation, and its
+    parameters, estimated on the whole record once the held-out rows decided, hold the
+    plant's; the clean twin names nothing."""
+    from ipmc_model.hysteresis import GeneralizedPI
+
+    day1 = plant_record({}, 240.0, 4, holds=True)
+    model = GeneralizedPI(dt_s=1 / RATE).fit(day1.u_v, day1.y_mm)
+    assert max(model.memory_taus_s_) >= 30.0
+    fx = {"creep": {"tau_s": 20.0, "gain_mm_per_v": -0.3}}
+    d = diagnose(plant_record(fx, 240.0, 5, holds=True), model=model)
+    assert d.effects_found[:1] == ["creep"]
+    p = next(r for r in d.candidates if r.name == "creep").evidence.params
+    assert len(p["taus_s"]) == 1 and p["interval"] == "whole record"
+    assert p["tau_ci_s"][0] < 20.0 < p["tau_ci_s"][1]
+    assert p["gain_ci_mm_per_v"][0] < -0.3 < p["gain_ci_mm_per_v"][1]
+    clean = diagnose(plant_record({}, 240.0, 5, holds=True), model=model)
+    assert clean.effects_found == []
+
+
 class GainChange(Candidate):
     """A toy effect: the whole bending scaled, fitted around a given model."""
 

@@ -217,12 +217,17 @@ def fast_input_reason(rec: DiagnosisRecord, model: GeneralizedPI, what: str) -> 
 
 
 # -- the effects ----------------------------------------------------------------------------
-def creep_taus(model: GeneralizedPI, rec: DiagnosisRecord) -> tuple[float, ...]:
-    """Creep time constants the fit part can identify and the model does not have."""
+def creep_taus(model: GeneralizedPI, rec: DiagnosisRecord, given: bool = False
+               ) -> tuple[float, ...]:
+    """Creep time constants the fit part can identify and the model does not have. Around a
+    given (frozen) model a relaxation of the output may share a time constant with the
+    model's input memory: the model's weights stay as another day fitted them, so the block
+    takes up only what has changed; in a refit the two channels would be the same regressor."""
     c = rec.config
+    have = set(model.output_taus_s) | (set() if given else set(model.memory_taus_s_))
     return tuple(t for t in DEFAULT_MEMORY_TAUS_S
                  if t >= c.creep_min_tau_s and t * MIN_SPANS_PER_TAU <= rec.excitation.fit_span_s
-                 and t not in model.memory_taus_s_ and t not in model.output_taus_s)
+                 and t not in have)
 
 
 #: Holds proposed for creep last this many of its time constants (95 % settled).
@@ -243,7 +248,7 @@ class Creep(Candidate):
 
     def not_testable(self, rec, model, given):
         c, ex = rec.config, rec.excitation
-        if not creep_taus(model, rec):
+        if ex.fit_span_s < MIN_SPANS_PER_TAU * c.creep_min_tau_s:
             return (f"the fit part spans {ex.fit_span_s:.0f} s: a relaxation slower than "
                     f"{c.creep_min_tau_s:g} s must be seen settling over "
                     f"{MIN_SPANS_PER_TAU:g} of its time constants; record longer")
@@ -274,21 +279,24 @@ class Creep(Candidate):
         return Fitted(m, _creep_params(m, taus, rec))
 
     def around(self, model, rec):
-        taus = creep_taus(model, rec)
-        if not taus:
+        # one relaxation, its time constant and gain fitted to what the frozen model leaves:
+        # a bank of free gains would also take up the slow part of that model's misfit
+        if not creep_taus(model, rec, given=True):
             return "no creep time constant the fit part can identify"
-
+        est = creep_estimate(model, rec)
         m = copy.deepcopy(model)
-        v = m._charge(rec.u_v[rec.fit], m._theta)
-        X = lowpass_bank(v, taus, rec.dt_s)[0]
-        r = rec.y_mm[rec.fit] - m.simulate(rec.u_v[rec.fit])
-        m.output_taus_s = tuple(m.output_taus_s) + taus
-        m.output_coef_ = np.concatenate([m.output_coef_, np.linalg.lstsq(X, r, rcond=None)[0]])
-        return Fitted(m, _creep_params(m, taus, rec))
+        m.output_taus_s = (*m.output_taus_s, est["tau_s"])
+        m.output_coef_ = np.append(m.output_coef_, est["gain_mm_per_v"])
+        return Fitted(m, {"taus_s": [est["tau_s"]], "gains_mm_per_v": [est["gain_mm_per_v"]],
+                          **est})
 
     def refine(self, before, rec, given):
-        # around a given model the block is linear and its estimate already the profile's
-        return {} if given else creep_profile(before, rec)
+        # the held-out rows have decided; the relaxation is then estimated on every row (the
+        # held-out part's holds show it settling too). Around a given model that is a profile
+        # over tau with a linear gain; the own model moves with tau, so it is refitted.
+        if given:
+            return {**creep_estimate(before, rec.whole()), "interval": "whole record"}
+        return creep_profile(before, rec)
 
 
 def creep_profile(before: GeneralizedPI, rec: DiagnosisRecord, n_taus: int = 9) -> dict:
@@ -343,7 +351,9 @@ def _creep_params(m: GeneralizedPI, taus, rec: DiagnosisRecord) -> dict:
     """The creep's bank (time constants, gain on each in mm per V of charge) and one
     relaxation's time constant and gain with their 95 % intervals (:func:`creep_estimate`)."""
     n = len(taus)
-    est = creep_estimate(m, n, rec)
+    base = copy.deepcopy(m)
+    base.output_coef_ = np.concatenate([m.output_coef_[:-n], np.zeros(n)])
+    est = creep_estimate(base, rec)
     return {"taus_s": list(taus), "gains_mm_per_v": [float(g) for g in m.output_coef_[-n:]],
             **est}
 
@@ -360,18 +370,16 @@ def effective_samples(e: np.ndarray) -> float:
     return float(e.size / max(1.0, 1.0 + 2.0 * acf[1:stop].sum()))
 
 
-def creep_estimate(m: GeneralizedPI, n_bank: int, rec: DiagnosisRecord) -> dict:
-    """One relaxation ``g * lowpass(v, tau)`` fitted, over the fit rows, to what the model
-    leaves without its last ``n_bank`` output relaxations: ``tau_s`` and ``gain_mm_per_v``
+def creep_estimate(base: GeneralizedPI, rec: DiagnosisRecord) -> dict:
+    """One relaxation ``g * lowpass(v, tau)`` fitted, over the fit rows, to what ``base``
+    leaves: ``tau_s`` and ``gain_mm_per_v``
     with 95 % intervals. tau's is the profile-likelihood interval (the sum of squares within
     chi2(1) 0.95 of its minimum) and the gain's the Wald one at that tau, both with the
     residual's effective sample size (:func:`effective_samples`): the residual of a free run
     is far from white, and n alone would make the intervals too narrow."""
     u, y = rec.u_v[rec.fit], rec.y_mm[rec.fit]
-    base = copy.deepcopy(m)
-    base.output_coef_ = np.concatenate([m.output_coef_[:-n_bank], np.zeros(n_bank)])
     r = y - base.simulate(u)
-    v = m._charge(u, m._theta)
+    v = base._charge(u, base._theta)
     lo, hi = rec.config.creep_min_tau_s / 3.0, rec.excitation.fit_span_s / MIN_SPANS_PER_TAU
 
     def fit(tau: float) -> tuple[float, float, np.ndarray]:

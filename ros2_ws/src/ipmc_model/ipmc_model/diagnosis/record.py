@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+import copy
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -52,6 +53,14 @@ class DiagnosisRecord:
         self.cut = int(round(config.fit_share * self.u_v.size))
         self.judged = self._judged()
         self.excitation = self._excitation()
+
+    def whole(self) -> DiagnosisRecord:
+        """This record with every row in the fit part: where a parameter is estimated once
+        the held-out rows have decided."""
+        out = copy.copy(self)
+        out.cut = self.u_v.size
+        out.excitation = replace(self.excitation, fit_span_s=self.excitation.span_s)
+        return out
 
     @property
     def fit(self) -> slice:
