@@ -165,6 +165,37 @@ def test_sigint_stops_every_node_within_2s(processes, rclpy_context, spin, inver
         n: processes.log(n)[-600:] for n, c in processes.returncodes.items() if c != 0}
 
 
+def test_realtime_reference_starts_its_time_once_min_subscribers_matched(processes,
+                                                                          rclpy_context, spin):
+    """In real time the reference's time 0 waits for ``min_subscribers`` matched listeners
+    (model_server subscribes once its model has loaded): nothing is published before, and the
+    first sample is the generator's value at t = 0, whenever the last listener came."""
+    from geometry_msgs.msg import PointStamped
+
+    from ipmc_driver.qos import SAMPLE_QOS
+
+    processes.start_node("reference", "reference", {"kind": "sine", "amplitude_mm": 2.0,
+                                                    "phase_rad": 1.5707963,
+                                                    "min_subscribers": 2})
+    node = rclpy.create_node("reference_realtime_gate_test", context=rclpy_context)
+    try:
+        first, second = [], []
+        node.create_subscription(PointStamped, "/ipmc/reference",
+                                 lambda m: first.append(m.point.x), SAMPLE_QOS)
+        assert spin(node, lambda: node.count_publishers("/ipmc/reference") > 0, 20.0), \
+            "reference not up"
+        spin(node, lambda: False, 2.0)
+        assert first == [], f"published before min_subscribers matched: {first[:5]}"
+        node.create_subscription(PointStamped, "/ipmc/reference",
+                                 lambda m: second.append(m.point.x), SAMPLE_QOS)
+        assert spin(node, lambda: len(first) >= 3 and len(second) >= 3, 20.0), (first, second)
+    finally:
+        node.destroy_node()
+    processes.stop("reference")
+    # a sine with phase pi/2 starts at its crest: t = 0 came when the gate opened
+    assert first[0] == pytest.approx(2.0e-3, rel=1e-3), first[:3]
+
+
 def test_lockstep_reference_holds_its_first_samples_for_min_subscribers(processes,
                                                                          rclpy_context, spin):
     """On use_sim_time the reference's first burst waits until /ipmc/reference has matched

@@ -214,7 +214,9 @@ def test_bringup_serves_each_kind_of_feedforward_model_as_model_server_expects(t
 def test_lockstep_bringup_waits_for_every_listener_it_starts(model, record, listeners):
     """In lock-step, time and the reference's first samples wait until every node started
     that listens (controller, model_server, recorder) has matched, not only those the graph
-    lists by then; the plant also waits for the controller's stamped commands."""
+    lists by then; the plant also waits for the controller's stamped commands. In real time
+    the reference's time 0 waits for the same listeners (model_server subscribes once its
+    model has loaded), the plant does not wait."""
     specs = {s.name: s.params for s in graph_specs(
         rig_port=None, lockstep=True, model=model, mode="hybrid", reference="sine",
         plant_effects=[], record=record)}
@@ -228,6 +230,6 @@ def test_lockstep_bringup_waits_for_every_listener_it_starts(model, record, list
     realtime = {s.name: s.params for s in graph_specs(
         rig_port=None, lockstep=False, model=model, mode="hybrid", reference="sine",
         plant_effects=[], record=record)}
-    assert "min_subscribers" not in realtime["reference"]
+    assert realtime["reference"]["min_subscribers"] == listeners
     assert "lockstep_min_command_publishers" not in realtime["sim_plant"]
     assert "await_publishers" not in realtime.get("recorder", {})

@@ -194,9 +194,10 @@ def graph_specs(*, rig_port: str | None, lockstep: bool, model: str | None, mode
     listeners = sum(s.name in LISTENERS for s in specs)
     ref = {**common, "kind": reference, "rate_hz": rate_hz, "preview_s": 2.0 / rate_hz,
            **(reference_params or {})}
-    if sim_time:
-        # the first samples wait until every listener started here has matched (reference)
-        ref["min_subscribers"] = listeners
+    # the reference's time 0 waits until every listener started here has matched: in
+    # lock-step none loses the first samples; in real time the loop starts with the
+    # feedforward served (model_server subscribes once its model has loaded)
+    ref["min_subscribers"] = listeners
     specs.append(NodeSpec("reference", "reference", ref))
     specs.append(plant_spec(rig_port=rig_port, lockstep=lockstep, rate_hz=rate_hz,
                             plant_effects=plant_effects, listeners=listeners))

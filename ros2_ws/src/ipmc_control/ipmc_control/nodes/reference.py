@@ -5,10 +5,12 @@ m/s (analytic for the smooth generators, 0 on a step train's levels; the control
 derivative acts on the error with it) (frame ``ipmc_clamp``), published
 every ``1/rate_hz`` s of the node's clock (ROS time: with ``use_sim_time:=true`` it follows
 ``/clock``, and also ticks on each ``/clock`` message, so that it starts with a lock-step
-plant's first sample; that first tick waits until ``/ipmc/reference`` has matched at least
-``min_subscribers`` subscriptions, and, at most 5 s of wall time, every one the graph shows, so
-none misses the first samples: the graph can list a subscription late, so ``ipmc track`` and
-``ipmc bringup --lockstep`` set ``min_subscribers`` to the listeners they start). The
+plant's first sample). Its time 0 waits until ``/ipmc/reference`` has matched at least
+``min_subscribers`` subscriptions, and, at most 5 s of wall time, every one the graph shows: in
+lock-step none then misses the first samples (the graph can list a subscription late), and in
+real time the loop starts once every listener is up (a model_server that is still loading its
+model would leave the first seconds to the PID alone). ``ipmc track`` and ``ipmc bringup`` set
+``min_subscribers`` to the listeners they start. The
 generator (``ipmc_control.references``) is chosen by ``kind``:
 
 - ``constant``: ``value_mm``;
@@ -102,7 +104,7 @@ PARAMETERS = {
         0.0, "publish the reference this far ahead of the clock, s (>= 0): a trajectory is "
         "known in advance, and feedforward needs the next sample", True, non_negative),
     "min_subscribers": ParameterSpec(
-        0, "use_sim_time: the first samples wait until /ipmc/reference has matched this many "
+        0, "the reference's time 0 waits until /ipmc/reference has matched this many "
         "subscriptions (and every one the graph shows, at most 5 s)", True, non_negative),
     "kind": ParameterSpec("sine", " | ".join(KINDS), check=one_of(*KINDS)),
     **GENERATOR_PARAMS,
@@ -145,17 +147,12 @@ class ReferenceNode(Node):
             # lock-step plant publishes its sample 0 and waits for the command, which waits for
             # this reference: tick on /clock itself, so the reference starts at the plant's t = 0.
             self.create_subscription(ClockMsg, "/clock", self._on_clock, LATCHED_CLOCK_QOS)
-            # The first /clock sends a burst (up to preview_s ahead) at once: hold it until
-            # every subscription the graph shows has matched, or a volatile one (model_server,
-            # a recorder) loses it and a lock-step controller waits for feedforwards that
-            # never come. While held, a wall timer retries (the simulated clock waits too).
-            self._start_gate: MatchGate | None = MatchGate(
-                self.count_subscribers,
-                [(self.pub, "/ipmc/reference",
-                  p["min_subscribers"])],
-                warn=self.get_logger().warn)
-        else:
-            self._start_gate = None
+        # The first tick (in lock-step a burst up to preview_s ahead) is held until every
+        # subscription the graph shows has matched, or a volatile one (model_server, a
+        # recorder) loses it; while held, a wall timer retries (a simulated clock waits too).
+        self._start_gate: MatchGate | None = MatchGate(
+            self.count_subscribers, [(self.pub, "/ipmc/reference", p["min_subscribers"])],
+            warn=self.get_logger().warn)
         self._held_ns: int | None = None
         self._hold_timer = None
         self.get_logger().info(
