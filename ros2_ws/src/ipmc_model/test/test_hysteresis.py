@@ -319,3 +319,4 @@ def test_the_charging_current_channel_steps_as_it_simulates():
                       max_nfev=8).fit(u, y)
     st = m.stepper()
     assert np.allclose([st.step(v) for v in u], m.simulate(u), atol=1e-9)
+

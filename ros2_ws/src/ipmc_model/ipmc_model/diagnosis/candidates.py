@@ -314,6 +314,11 @@ def creep_profile(before: GeneralizedPI, rec: DiagnosisRecord, n_taus: int = 9) 
     sse = np.array([m.train_rmse_ ** 2 * u.size for m in fits])
     k = int(np.argmin(sse))
     n_eff = effective_samples(fits[k].simulate(u) - y)
+    # the gain's Wald half-width at each tau: its channel's energy against the residual
+    # variance per effective sample
+    energy = np.array([np.sum(lowpass_bank(m._charge(u, m._theta), (t,), rec.dt_s)[0] ** 2)
+                       for m, t in zip(fits, grid, strict=True)])
+    halves = 1.96 * np.sqrt(sse / n_eff / energy)
     x, step = np.log(grid), float(np.log(grid[1] / grid[0]))
     excess = n_eff * np.log(sse / sse.min()) - chi2.ppf(0.95, 1)
     if 0 < k < n_taus - 1 and min(excess[k - 1], excess[k + 1]) > 0:
@@ -322,7 +327,7 @@ def creep_profile(before: GeneralizedPI, rec: DiagnosisRecord, n_taus: int = 9) 
         curv = (a - 2 * b + c) / step ** 2
         centre = x[k] + 0.5 * step * (a - c) / (a - 2 * b + c)
         half = math.sqrt(chi2.ppf(0.95, 1) / (0.5 * curv))
-        return _tau_and_gain(x, fits, centre, (centre - half, centre + half))
+        return _tau_and_gain(x, fits, halves, centre, (centre - half, centre + half))
     ends = []
     for side in (range(k, -1, -1), range(k, n_taus)):   # an end at the grid's edge: open
         idx = list(side)
@@ -332,18 +337,21 @@ def creep_profile(before: GeneralizedPI, rec: DiagnosisRecord, n_taus: int = 9) 
                 end = float(x[i] + (x[j] - x[i]) * -excess[i] / (excess[j] - excess[i]))
                 break
         ends.append(end)
-    return _tau_and_gain(x, fits, float(x[k]), tuple(ends))
+    return _tau_and_gain(x, fits, halves, float(x[k]), tuple(ends))
 
 
-def _tau_and_gain(log_grid: np.ndarray, fits: list, centre: float, ends: tuple) -> dict:
+def _tau_and_gain(log_grid: np.ndarray, fits: list, halves: np.ndarray, centre: float,
+                  ends: tuple) -> dict:
     """tau (s) at ``centre`` with the interval ``ends`` (log s), and the refits' creep gain
-    (mm/V) there with its range over the interval (the gain's interval given tau's)."""
+    (mm/V) there with its interval: each gain's Wald interval (``halves``), joined over tau's
+    interval."""
     gains = np.array([m.output_coef_[-1] for m in fits])
-    inside = np.interp(np.linspace(ends[0], ends[1], 25), log_grid, gains)
+    at = np.linspace(ends[0], ends[1], 25)
+    g, h = np.interp(at, log_grid, gains), np.interp(at, log_grid, halves)
     return {"tau_s": float(np.exp(centre)),
             "tau_ci_s": [float(np.exp(ends[0])), float(np.exp(ends[1]))],
             "gain_mm_per_v": float(np.interp(centre, log_grid, gains)),
-            "gain_ci_mm_per_v": [float(inside.min()), float(inside.max())],
+            "gain_ci_mm_per_v": [float((g - h).min()), float((g + h).max())],
             "interval": "profile of refits"}
 
 
