@@ -134,6 +134,13 @@ def test_creep_around_a_given_model_with_slow_input_memory_is_one_relaxation():
     assert len(p["taus_s"]) == 1 and p["interval"] == "whole record"
     assert p["tau_ci_s"][0] < 20.0 < p["tau_ci_s"][1]
     assert p["gain_ci_mm_per_v"][0] < -0.3 < p["gain_ci_mm_per_v"][1]
+    # Holm's family is the testable candidates the fit rows support: creep's p (the smallest)
+    # is multiplied by their number alone
+    ev = next(r for r in d.rounds[0].results if r.name == "creep").evidence
+    family = [r for r in d.rounds[0].results if r.evidence is not None
+              and r.outcome is not Outcome.NOT_TESTABLE and r.evidence.screen.passed]
+    assert ev.screen.passed and len(family) < len(d.rounds[0].results)
+    assert ev.p_holm == pytest.approx(min(1.0, len(family) * ev.test.p_value))
     clean = diagnose(plant_record({}, 240.0, 5, holds=True), model=model)
     assert clean.effects_found == []
 

@@ -54,6 +54,8 @@ class Candidate:
     name: ClassVar[str] = ""
     #: The effect in one line of physics.
     meaning: ClassVar[str] = ""
+    #: Parameters the block adds (the degrees of freedom of its fit-part screen).
+    n_params: ClassVar[int] = 1
 
     def not_testable(self, rec: DiagnosisRecord, model: GeneralizedPI, given: bool
                      ) -> str | None:
@@ -243,6 +245,7 @@ CROSSING_PERIOD_S, CROSSING_CYCLES = 20.0, 2
 @register
 class Creep(Candidate):
     name = "creep"
+    n_params = 2    # one relaxation: its time constant and gain
     meaning = ("slow relaxation under a sustained voltage (time constants of "
                "tens of seconds to minutes): the tip keeps moving while the input holds")
 
@@ -441,6 +444,7 @@ def _drift_params(m: GeneralizedPI) -> dict:
 @register
 class Drift(Candidate):
     name = "drift"
+    n_params = 2    # the gain's and the offset's rates
     meaning = ("an offset and a gain that change steadily over the record (dehydration, "
                "temperature)")
 

@@ -38,6 +38,22 @@ class LossTest:
 
 
 @dataclass(frozen=True)
+class FitScreen:
+    """Whether the fit rows support a candidate's block: the likelihood ratio
+    ``n_eff ln(SSE_current / SSE_candidate)`` of the fit rows' free-run errors, at the current
+    model's effective sample size, against chi2(``n_params``) at the family's level."""
+
+    likelihood_ratio: float
+    needed: float
+    effective_samples: float
+    n_params: int
+
+    @property
+    def passed(self) -> bool:
+        return self.likelihood_ratio >= self.needed
+
+
+@dataclass(frozen=True)
 class Evidence:
     """What one candidate showed in one round."""
 
@@ -47,10 +63,13 @@ class Evidence:
     params: dict
     scan: str = ""
     p_holm: float = 1.0
+    screen: FitScreen | None = None
 
     def as_dict(self) -> dict:
         d = asdict(self)
         d["material"] = self.test.material
+        if self.screen is not None:
+            d["screen"]["passed"] = self.screen.passed
         return d
 
 

@@ -7,18 +7,20 @@ the next round starts from the model with it. The search stops when a round acce
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import replace
 
 import numpy as np
+from scipy.stats import chi2
 
 from ..hysteresis import DEFAULT_MEMORY_TAUS_S, GeneralizedPI
-from .candidates import CANDIDATES, Fitted
+from .candidates import CANDIDATES, Fitted, effective_samples, fit_sse
 from .config import DiagnosisConfig
 from .decision import holm, loss_differential_test, passes
 from .experiment import design_experiment
 from .record import DiagnosisRecord
-from .results import CandidateResult, Diagnosis, Evidence, Outcome, Round
+from .results import CandidateResult, Diagnosis, Evidence, FitScreen, Outcome, Round
 
 #: Trust-region iterations of the core model's fits and of its candidates' refits (with one
 #: start each): without direction memory the core converges within them, and every round
@@ -80,12 +82,23 @@ def _try(name: str, current, rec, given, progress) -> tuple[str | None, Fitted |
     return why, out
 
 
+def fit_screen(current_sse: float, n_eff: float, candidate, model, rec, alpha: float
+               ) -> FitScreen:
+    """The fit rows' support for a candidate's block (:class:`FitScreen`)."""
+    new_sse = fit_sse(model, rec)
+    lr = n_eff * math.log(current_sse / new_sse) if new_sse > 0 else math.inf
+    return FitScreen(float(lr), float(chi2.ppf(1.0 - alpha, candidate.n_params)),
+                     float(n_eff), candidate.n_params)
+
+
 def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, given: bool,
               progress) -> tuple[Round, Fitted | None]:
     """One round: every candidate in ``names`` fitted around ``current`` and judged."""
     cfg = rec.config
     e_cur = held_error(current, rec)
     margin = cfg.material_noise_share * rec.excitation.noise_floor_mm ** 2
+    r_fit = current.simulate(rec.u_v[rec.fit]) - rec.y_mm[rec.fit]
+    sse_fit, n_eff = float(r_fit @ r_fit), effective_samples(r_fit)
     results, tested, untestable = {}, {}, {}
     for name in names:
         why, out = _try(name, current, rec, given, progress)
@@ -98,15 +111,18 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
             continue
         e_new = held_error(out.model, rec)
         test = loss_differential_test(e_cur, e_new, margin)
-        tested[name] = (out, Evidence(_rms(e_cur), _rms(e_new), test, out.params, out.scan))
-    # the family is the candidates the round may accept; rivals are tested beside it
-    p_adj = holm({n: ev.test.p_value for n, (_, ev) in tested.items() if n not in untestable})
-    p_adj.update({n: ev.test.p_value for n, (_, ev) in tested.items() if n in untestable})
-    passing = [n for n in tested if passes(tested[n][1].test, p_adj[n], cfg.family_alpha)]
+        screen = fit_screen(sse_fit, n_eff, CANDIDATES[name], out.model, rec, cfg.family_alpha)
+        tested[name] = (out, Evidence(_rms(e_cur), _rms(e_new), test, out.params, out.scan,
+                                      screen=screen))
+    # the family is the candidates the round may accept and the fit rows support; rivals
+    # (not testable) are tested beside it
+    screened = {n: ev for n, (_, ev) in tested.items() if ev.screen.passed}
+    p_adj = holm({n: ev.test.p_value for n, ev in screened.items() if n not in untestable})
+    p_adj.update({n: ev.test.p_value for n, ev in screened.items() if n in untestable})
+    passing = [n for n in screened if passes(tested[n][1].test, p_adj[n], cfg.family_alpha)]
     best = max(passing, key=lambda n: tested[n][1].test.mean_gain_mm2, default=None)
     for name, (_, ev) in tested.items():
-        ev = Evidence(ev.rmse_current_mm, ev.rmse_candidate_mm, ev.test, ev.params, ev.scan,
-                      p_adj[name])
+        ev = replace(ev, p_holm=p_adj.get(name, 1.0))
         outcome, reason = _verdict(name, ev, best, passing, cfg.family_alpha, untestable)
         results[name] = CandidateResult(name, outcome, reason, number, ev)
     accepted = best if best is not None and best not in untestable else None
@@ -115,10 +131,11 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
 
 
 def _verdict(name, ev: Evidence, best, passing, alpha, untestable) -> tuple[Outcome, str]:
-    t = ev.test
+    t, sc = ev.test, ev.screen
     text = (f"held-out RMSE {ev.rmse_current_mm:.4f} -> {ev.rmse_candidate_mm:.4f} mm, mean "
             f"gain {t.mean_gain_mm2:.3g} mm^2 (margin {t.margin_mm2:.3g}), DM p = "
-            f"{t.p_value:.2g}, Holm p = {ev.p_holm:.2g}")
+            f"{t.p_value:.2g}, Holm p = {ev.p_holm:.2g}; fit rows: likelihood ratio "
+            f"{sc.likelihood_ratio:.3g} (needs {sc.needed:.3g})")
     if name in untestable:
         what = ("it would explain the residual best: undecided until such a record is made"
                 if name == best else "as a rival only")
@@ -128,6 +145,9 @@ def _verdict(name, ev: Evidence, best, passing, alpha, untestable) -> tuple[Outc
     if name in passing:
         rival = " (not testable on this record)" if best in untestable else ""
         return Outcome.REJECTED, f"{text}; passed, but {best}{rival} gained more this round"
+    if not sc.passed:
+        return Outcome.REJECTED, (f"{text}; the fit rows do not support the block "
+                                  f"({sc.effective_samples:.0f} effective samples)")
     if ev.p_holm > alpha:
         return Outcome.REJECTED, f"{text}; not significant at {alpha:g} after Holm"
     return Outcome.REJECTED, f"{text}; significant but below the materiality margin"
