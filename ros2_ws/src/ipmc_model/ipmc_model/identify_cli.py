@@ -183,6 +183,7 @@ def evaluate_model(model, u, y) -> dict:
     return {
         "free_run": free,
         "one_step": score(target, y_one, skip),
+        "input_only": y_one is y_free,
         "units": units,
         "samples_skipped": int(skip),
         "free_run_output": y_free,
@@ -192,12 +193,16 @@ def evaluate_model(model, u, y) -> dict:
 
 def _print_metrics(result: dict, label: str) -> None:
     units = result["units"]
-    for mode in ("free_run", "one_step"):
+    modes = ("free_run",) if result.get("input_only") else ("free_run", "one_step")
+    for mode in modes:
         m = result[mode]
         name = mode.replace("_", "-")
         print(f"{label} {name}: RMSE {m['rmse']:.4f} {units}, NRMSE {m['nrmse']:.4f}, "
               f"fit {m['fit_percent']:.2f} %, max |error| {m['max_abs']:.4f} {units}")
-    print(f"({result['samples_skipped']} initial samples skipped: the model's lags)")
+    if result.get("input_only"):
+        print("(the model runs on the input alone: its one-step prediction is its free run)")
+    elif result["samples_skipped"]:
+        print(f"({result['samples_skipped']} initial samples skipped: the model's lags)")
 
 
 #: A model that explains less than half of its own record's variance in free run (fit % is

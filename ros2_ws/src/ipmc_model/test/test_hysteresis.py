@@ -139,6 +139,9 @@ def test_identify_with_no_flag_compares_families_and_keeps_the_table(tmp_path, c
     assert identify_main(["--data", data, "--out", str(tmp_path / "m.json")]) == 0
     out = capsys.readouterr().out
     assert "held-out free-run RMSE" in out and "<- chosen" in out
+    # the GPI runs on the input alone: one free-run line, no one-step line that repeats it
+    assert "training free-run: RMSE" in out and "training one-step" not in out
+    assert "its one-step prediction is its free run" in out
     doc = json.loads((tmp_path / "m.json").read_text())
     sel = doc["metadata"]["selection"]
     rows = {r["family"]: r for r in sel["families"]}

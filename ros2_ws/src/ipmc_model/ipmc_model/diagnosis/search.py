@@ -77,8 +77,12 @@ def _try(name: str, current, rec, given, progress) -> tuple[str | None, Fitted |
     why = cand.not_testable(rec, current, given)
     t0 = time.perf_counter()
     out = cand.fit(current, rec, given)
-    progress(f"  {name}: fitted in {time.perf_counter() - t0:.1f} s"
-             + ("" if why is None else " (not testable on this record)"))
+    took = time.perf_counter() - t0
+    if isinstance(out, str):
+        progress(f"  {name}: {'not testable on this record: ' if why else ''}{out}")
+    else:
+        progress(f"  {name}: fitted in {took:.1f} s"
+                 + ("" if why is None else " (not testable on this record)"))
     return why, out
 
 
