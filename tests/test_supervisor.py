@@ -50,7 +50,8 @@ def test_no_reference_means_0_v_and_a_reset():
     s.on_measurement(0, 1.0, 0.0, 0.0)
     c = s.on_tick(0.01)
     assert c.u_v == 0.0 and s.idle_reason == "no reference yet"
-    assert ("idle", "no reference yet: command 0 V") in s.notes
+    # before a reference ever came it is the start: a note to log as information
+    assert ("waiting", "no reference yet: command 0 V") in s.notes
     assert measurement_status(s, 0.01).level == ERROR
 
 
@@ -63,6 +64,7 @@ def test_a_silent_measurement_means_0_v_after_its_timeout():
         assert s.on_tick(k * DT_S).u_v != 0.0
     c = s.on_tick(0.51)                       # 0.51 s after the last displacement
     assert c.u_v == 0.0 and s.idle_reason == "no fresh displacement"
+    assert ("idle", "no fresh displacement: command 0 V") in s.notes   # lost: a warning
     assert s.hybrid.pid.i_term == 0.0         # the state was reset
     s.on_measurement(20 * MS, 0.0, 0.53, 0.53)
     assert s.on_tick(0.53).u_v > 0 and s.idle_reason == ""

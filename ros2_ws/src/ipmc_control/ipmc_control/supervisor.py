@@ -256,15 +256,21 @@ class Supervisor:
             last = ("none received yet" if self._ff_v is None
                     else f"last received {now_s - self.ff_rx_s:.3f} s before")
             at = f" at sample {t_s:.3f} s" if target_ns is not None else ""
-            self.notes.append(("stale", f"feedforward stale (> {self.ff_timeout_s} s){at}: "
-                               f"{last}, {self.unpaired_steps} unpaired step(s); PID alone "
-                               "until it returns"))
+            if self._ff_v is None:   # the start: model_server has not answered yet
+                self.notes.append(("waiting", f"no feedforward yet{at}: PID alone until it "
+                                              "comes"))
+            else:
+                self.notes.append(("stale", f"feedforward stale (> {self.ff_timeout_s} s){at}: "
+                                            f"{last}, {self.unpaired_steps} unpaired step(s); "
+                                            "PID alone until it returns"))
         else:
             self.notes.append(("back", f"feedforward back: mode {self.hybrid.mode}"))
 
     def _go_idle(self, reason: str, answer_ns: int) -> Command:
         if reason != self.idle_reason:
-            self.notes.append(("idle", f"{reason}: command 0 V"))
+            # before the input ever came it is the start, not a fault
+            never = self._ref is None if reason == "no reference yet" else self._y_mm is None
+            self.notes.append(("waiting" if never else "idle", f"{reason}: command 0 V"))
             self.idle_reason = reason
             self.hybrid.reset()
         return Command(0.0, answer_ns)

@@ -265,7 +265,7 @@ class Controller(Node):
             self._publish_command(c.u_v, c.answer_ns)
             self.step_us.append((time.perf_counter() - wall) * 1e6)
         for kind, text in self.supervisor.notes:
-            if kind == "back":
+            if kind in ("back", "waiting"):
                 self.get_logger().info(text)
             else:
                 if kind == "stale":
