@@ -7,10 +7,9 @@ input method returns the commands to publish. The rules:
   state reset (the loop starts on the reference's first sample).
 - No displacement younger than ``measurement_timeout_s`` (node clock) when feedback is needed
   (any mode but ``inverse`` with a fresh feedforward): 0 V, state reset.
-- Hybrid or inverse mode, the first feedforward not yet received: 0 V for at most
-  :data:`FEEDFORWARD_START_WAIT_S` after the first reference, so that the loop starts with its
-  feedforward (PID alone meanwhile would wind its integrator against the feedforward to come,
-  and the bumpless return would keep that for seconds); then PID alone with a warning.
+- Hybrid or inverse mode, before the first feedforward: PID alone; the first feedforward
+  starts the loop afresh (PID state cleared), not bumplessly: the integral the PID wound up
+  alone would otherwise be kept against the feedforward and unwind for seconds.
 - A feedforward older than ``feedforward_timeout_s``: PID alone (bumpless) until one comes
   back; a feedforward answering the very reference sample a step aims at is fresh whatever its
   receive time says (under ``use_sim_time`` it may come before the ``/clock`` that dates it).
@@ -33,9 +32,6 @@ from .hybrid import HybridController
 
 # Recent reference samples kept to pair a feedforward with the reference it answers.
 REFERENCE_MEMORY = 64
-#: Longest wait (node clock, s) for the first feedforward after the first reference: a
-#: model_server that is up answers within a few samples; one that is not gets PID alone.
-FEEDFORWARD_START_WAIT_S = 5.0
 OK, WARN, ERROR = 0, 1, 2   # diagnostic_msgs/DiagnosticStatus levels
 
 
@@ -109,7 +105,7 @@ class Supervisor:
         self._reference_publishers = reference_publishers
         self._ref: tuple[float, float] | None = None   # latest (mm, rate mm/s)
         self._first_ref_ns: int | None = None   # a step aiming before it has no reference
-        self._ref_since_s: float | None = None  # node clock of the first step with a reference
+        self._ff_started = False   # the loop has run with a feedforward
         self._recent_refs: OrderedDict[int, tuple[float, float]] = OrderedDict()
         self._ff_ref: tuple[float, float] | None = None  # the one the last feedforward answers
         self._recent_ffs: OrderedDict[int, float] = OrderedDict()
@@ -227,13 +223,14 @@ class Supervisor:
                         and target_ns < self._first_ref_ns)
         if self._ref is None or before_start:
             return self._go_idle("no reference yet", answer_ns)
-        if self._ref_since_s is None:
-            self._ref_since_s = now_s
         if needs_y and not y_fresh:
             return self._go_idle("no fresh displacement", answer_ns)
-        if (self.hybrid.mode != "pid" and self._ff_v is None
-                and now_s - self._ref_since_s < FEEDFORWARD_START_WAIT_S):
-            return self._go_idle("no feedforward yet", answer_ns)
+        if not self._ff_started and (ff_fresh or self.hybrid.mode == "pid"):
+            # the first feedforward of a loop started in hybrid or inverse mode: a fresh start,
+            # not a bumpless one (a loop started in pid mode switches bumplessly later)
+            self._ff_started = True
+            if self.hybrid.mode != "pid":
+                self.hybrid.reset()
         self.idle_reason = ""
         ref_mm, rate, ff_v = self._inputs(target_ns, answer_ns, ff_fresh)
         y_mm = self._y_mm if self._y_mm is not None else ref_mm
@@ -269,10 +266,9 @@ class Supervisor:
             last = ("none received yet" if self._ff_v is None
                     else f"last received {now_s - self.ff_rx_s:.3f} s before")
             at = f" at sample {t_s:.3f} s" if target_ns is not None else ""
-            if self._ff_v is None:
-                self.notes.append(("stale", f"no feedforward within "
-                                            f"{FEEDFORWARD_START_WAIT_S:g} s of the first "
-                                            f"reference{at}: PID alone until it comes"))
+            if self._ff_v is None:   # the start: model_server has not answered yet
+                self.notes.append(("waiting", f"no feedforward yet{at}: PID alone until it "
+                                              "comes"))
             else:
                 self.notes.append(("stale", f"feedforward stale (> {self.ff_timeout_s} s){at}: "
                                             f"{last}, {self.unpaired_steps} unpaired step(s); "
@@ -283,8 +279,7 @@ class Supervisor:
     def _go_idle(self, reason: str, answer_ns: int) -> Command:
         if reason != self.idle_reason:
             # before the input ever came it is the start, not a fault
-            never = {"no reference yet": self._ref, "no fresh displacement": self._y_mm,
-                     "no feedforward yet": self._ff_v}[reason] is None
+            never = (self._ref if reason == "no reference yet" else self._y_mm) is None
             self.notes.append(("waiting" if never else "idle", f"{reason}: command 0 V"))
             self.idle_reason = reason
             self.hybrid.reset()
