@@ -142,12 +142,8 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
               duration_s: float, *, log=sys.stderr, timeout_s: float | None = None,
               record: Path | None = None) -> dict:
     """Run the experiment through sim_plant (lock-step), model_server, controller, reference
-    and recorder as processes; return the summary computed from the recorded bag.
-
-    The bag is ``record`` and the nodes' logs ``record``'s name + ``_logs`` beside it; without
-    ``record`` both go to a temporary folder, removed after a run that printed no warning.
-
-    A forward model with voltage channels as ``model_path`` is served by model_server as
+    and recorder as processes; return the summary computed from the recorded bag (kept at
+    ``record``, see :func:`_run_paths`). A forward model with voltage channels is served as
     ``model_file`` with ``feedforward:=forward-inversion`` (``bringup.graph_specs``)."""
     import rclpy
     import rclpy.executors
@@ -163,15 +159,12 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     env.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")})
-    work = Path(tempfile.mkdtemp(prefix="ipmc_track_")) if record is None else None
-    bag = work / "bag" if work else Path(record)
-    logs = work / "logs" if work else bag.parent / f"{bag.name}_logs"
+    work, bag, logs = _run_paths(record)
     specs = _probe_specs(model_path, reference, mode, effects, bag)
     timeout_s = timeout_s or 90.0 + 3.0 * duration_s
     context = rclpy.Context()
-    # rclpy's own SIGINT handler only shuts the context down, and the wait loop below then never
-    # ends: Ctrl-C and SIGTERM are noted (StopSignals) and raised by the wait loop instead,
-    # KeyboardInterrupt and SystemExit(143), so the Graph stops every node on the way out.
+    # rclpy's SIGINT handler only shuts the context down (the wait loop would never end):
+    # StopSignals notes Ctrl-C and SIGTERM, the wait loop raises them, the Graph stops all.
     from rclpy.signals import SignalHandlerOptions
 
     rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
@@ -219,12 +212,22 @@ def run_graph(model_path: str | None, reference: str, mode: str, effects: list[s
     stop.raise_if_signalled()    # one that came while the graph stopped at the end of the run
     warned = _warn_from_logs(logs, mode, exits, log)
     summary, n = _summary_from_bag(bag, first_ref[0], duration_s)
-    kept = record is not None or warned
+    kept = work is None or warned
     print(f"graph run: {n} samples in {time.monotonic() - t_wall:.1f} s wall"
           + (f"; bag {bag}, logs {logs}" if kept else ""), file=log)
     if not kept:
         shutil.rmtree(work, ignore_errors=True)
     return summary
+
+
+def _run_paths(record: Path | None) -> tuple[Path | None, Path, Path]:
+    """(temporary folder or None, bag, logs folder) of a graph run: ``record`` and its
+    ``_logs`` sibling, or both inside a new temporary folder (removed after a run that printed
+    no warning)."""
+    if record is not None:
+        return None, Path(record), Path(record).parent / f"{Path(record).name}_logs"
+    work = Path(tempfile.mkdtemp(prefix="ipmc_track_"))
+    return work, work / "bag", work / "logs"
 
 
 def _bring_up(graph, specs, node, spin_until, stop, mode: str):
