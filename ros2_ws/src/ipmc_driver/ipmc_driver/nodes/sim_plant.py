@@ -24,7 +24,9 @@ Clocks (``clock_mode``):
   Who publishes commands is read from the DDS matches of the plant's own subscriptions, not
   from the ROS graph, which can lag them; time starts once ``lockstep_min_command_publishers``
   publishers of ``/ipmc/command_stamped`` have matched (``ipmc track`` and ``ipmc bringup`` set
-  it), so the first samples cannot run ahead of a controller the graph does not list yet.
+  it), so the first samples cannot run ahead of a controller the graph does not list yet;
+  once they have all left (an excitation at its end, a controller stopped), time stands still
+  until one returns or the plant is stopped.
 """
 
 from __future__ import annotations
@@ -201,6 +203,8 @@ class SimPlant(Node):
             return
         answered = self.command_count > self._count_at_sample
         nobody = self.sub_command.get_publisher_count() == 0
+        if nobody and self.get_parameter("lockstep_min_command_publishers").value > 0:
+            return   # the commanders time started with have left: it stands until one returns
         if answered or nobody or waited >= timeout:
             if not (answered or nobody):
                 self._note_unanswered(timeout)
