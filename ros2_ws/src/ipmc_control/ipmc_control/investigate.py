@@ -15,6 +15,10 @@ Each new record is diagnosed on its own, from the diagnosis's core model refitte
 part: the experiment repeats the probes in its held-out part after an identification input,
 so that record alone judges every candidate on the excitation that shows it, whereas blocks
 fitted around the earlier record's frozen model would be judged against that model's errors.
+Diagnosing all the records together (``ipmc diagnose --data A --data B``) fits one core model
+to both excitations instead; with the core model as it is that joint fit extrapolates worse
+on the experiment's repeated probes than the experiment's own fit, and a creep the experiment
+decides alone is then left below significance (``benchmarks/bench_investigate.py``).
 
 The record comes from a runner: the simulated IPMC in this process (``--in-process``: fast),
 the simulated plant in the lock-step ROS graph (``--sim``: ``ipmc bringup --sim --lockstep

@@ -1,6 +1,7 @@
 """``ipmc diagnose``: residual -> missing physical effect -> model with it, before and after.
 
-``ipmc diagnose --data FILE.csv|BAG [--model MODEL] --report DIR [--effects NAME ...]``
+``ipmc diagnose --data FILE.csv|BAG [--data ...] [--model MODEL] --report DIR
+[--effects NAME ...]``
 
 Writes ``summary.json``, ``report.md``, ``residual.png`` and the model files before and after
 to DIR; progress goes to stderr. See :mod:`ipmc_model.diagnosis` for the procedure.
@@ -11,8 +12,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .diagnosis import CANDIDATES, diagnose
+from .diagnosis import CANDIDATES
 from .diagnosis.report import check_report_dir, write_report
+from .diagnosis.search import diagnose_records
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -21,7 +23,12 @@ def _parser() -> argparse.ArgumentParser:
         description="Fit a model on the first 70 % of a record, find the physical effects it "
                     "lacks (creep, drift, delay, dead zone, ...) by their held-out free-run "
                     "gain, and report the error before and after.")
-    p.add_argument("--data", required=True, help="t,u,y CSV file (s, V, mm) or rosbag2 folder")
+    p.add_argument("--data", required=True, action="append", metavar="FILE",
+                   help="t,u,y CSV file (s, V, mm) or rosbag2 folder; give it again for more "
+                        "records of the same actuator (an experiment after a first record): "
+                        "each is split the same way, the models are fitted on the fit parts of "
+                        "all and judged on the held-out parts of all, and the report says "
+                        "which record decided what")
     p.add_argument("--model", help="a GPI model file (ipmc identify's default, or a diagnosis's "
                                    "model_after.json), e.g. from another day: kept as it is, "
                                    "and each effect's block is fitted around it (what changed "
@@ -53,13 +60,16 @@ def main(argv: list[str] | None = None) -> int:
 
         check_report_dir(args.report)
         model = load_any_model(args.model) if args.model else None
-        notes: list[str] = []
-        rec = load_record(args.data, allow_implausible=args.allow_implausible, notes=notes)
-        print_notes("ipmc diagnose", notes)
-        _progress(f"{args.data}: {len(rec)} samples at {rec.rate_hz:.4g} Hz")
-        d = diagnose(rec.t_s, rec.u_v, rec.y_mm, model=model, candidates=args.effects,
-                     progress=_progress)
-        summary = write_report(d, args.report, data_label=str(args.data))
+        records = []
+        for path in args.data:
+            notes: list[str] = []
+            rec = load_record(path, allow_implausible=args.allow_implausible, notes=notes)
+            print_notes("ipmc diagnose", notes)
+            _progress(f"{path}: {len(rec)} samples at {rec.rate_hz:.4g} Hz")
+            records.append((str(path), rec.t_s, rec.u_v, rec.y_mm))
+        d = diagnose_records(records, model=model, candidates=args.effects,
+                             progress=_progress)
+        summary = write_report(d, args.report, data_label=", ".join(map(str, args.data)))
     except ValueError as exc:  # DataError, ModelFileError and bad inputs are ValueErrors
         print(f"ipmc diagnose: error: {exc}", file=sys.stderr)
         return 1

@@ -231,13 +231,16 @@ def delayed(u: np.ndarray, samples: int, history=None) -> np.ndarray:
 
 def estimate_delay(u: np.ndarray, y: np.ndarray, dt_s: float, taus_s, max_samples: int) -> int:
     """Transport delay (samples) whose delayed input best explains ``y`` by least squares
-    through the relaxation bank (a linear model: the delay shows in its phase)."""
+    through the relaxation bank (a linear model: the delay shows in its phase); rows where
+    ``y`` is NaN (not measured) are left out."""
     best, best_sse = 0, math.inf
+    obs = np.isfinite(y)
     for d in range(max(0, int(max_samples)) + 1):
         ud = delayed(u, d)
-        X = np.column_stack([ud, lowpass_bank(ud, taus_s, dt_s)[0], np.ones(u.size)])
-        coef = np.linalg.lstsq(X, y, rcond=None)[0]
-        sse = float(np.sum((X @ coef - y) ** 2))  # lstsq gives no residual when rank-deficient
+        X = np.column_stack([ud, lowpass_bank(ud, taus_s, dt_s)[0], np.ones(u.size)])[obs]
+        coef = np.linalg.lstsq(X, y[obs], rcond=None)[0]
+        # lstsq gives no residual when rank-deficient
+        sse = float(np.sum((X @ coef - y[obs]) ** 2))
         if sse < best_sse:
             best, best_sse = d, sse
     return best
@@ -468,10 +471,15 @@ class GeneralizedPI:
 
     # -- fitting -----------------------------------------------------------------------------
     def fit(self, u, y) -> GeneralizedPI:
-        """Fit to input ``u`` (V) and output ``y`` (mm), both shape (N,); returns self."""
-        u, y = as_signal("u", u), as_signal("y", y)
+        """Fit to input ``u`` (V) and output ``y`` (mm), both shape (N,); returns self.
+
+        A NaN in ``y`` marks a row whose output was not measured (a gap between records, a
+        row kept for judging): the model runs through it and is fitted on the others."""
+        u, y = as_signal("u", u), as_signal("y", y, allow_nan=True)
         same_length(u=u, y=y)
-        self._check_params(u.size)
+        if np.any(np.isinf(y)):
+            raise ValueError("y has infinite values; mark rows not measured with NaN")
+        self._check_params(int(np.isfinite(y).sum()))
         if np.ptp(u) == 0.0:
             raise ValueError("u is constant; a hysteresis model needs a varying input")
         t0 = time.perf_counter()
@@ -497,7 +505,7 @@ class GeneralizedPI:
             _, bounds = self._initial_theta(u, span_s)
             x = self._joint_fit(u, y, x, bounds, self.cv_.alpha, max(5, self.max_nfev // 3))
         self._unpack(x)
-        self.train_rmse_ = float(np.sqrt(np.mean((self.simulate(u) - y) ** 2)))
+        self.train_rmse_ = float(np.sqrt(np.nanmean((self.simulate(u) - y) ** 2)))
         self.fit_seconds_ = time.perf_counter() - t0
         return self
 
@@ -514,7 +522,7 @@ class GeneralizedPI:
         self._unpack(x)
         self._say(f"refitted on this record from the parameters learned before: CV free-run RMSE "
                   f"{min(self.cv_.rmse):.4g} ({time.perf_counter() - t0:.1f} s)")
-        self.train_rmse_ = float(np.sqrt(np.mean((self.simulate(u) - y) ** 2)))
+        self.train_rmse_ = float(np.sqrt(np.nanmean((self.simulate(u) - y) ** 2)))
         self.fit_seconds_ = time.perf_counter() - t0
         return self
 
@@ -579,14 +587,16 @@ class GeneralizedPI:
         """The weights and map a linear fit gives at ``theta``, and its residual variance:
         features, then the map's knots at quantiles of the linear z and its hinges by least
         squares. Returns (variance, theta, feature mean, feature scale, w, knots)."""
-        F = self._raw_features(u, theta)
+        obs = np.isfinite(y)
+        F = self._raw_features(u, theta)[obs]
+        y = y[obs]
         mean, std = F.mean(axis=0), F.std(axis=0)
         scale = np.where(std > 0, std, 1.0)
-        A = np.column_stack([(F - mean) / scale, np.ones(u.size)])
+        A = np.column_stack([(F - mean) / scale, np.ones(y.size)])
         w = np.linalg.lstsq(A, y, rcond=None)[0]
         z = A @ w
         knots = place_knots(z, int(self.n_knots))
-        B = np.column_stack([hinge_basis(z, knots), np.ones(u.size)])
+        B = np.column_stack([hinge_basis(z, knots), np.ones(y.size)])
         resid = y - B @ np.linalg.lstsq(B, y, rcond=None)[0]
         return float(np.var(resid)), theta, mean, scale, w, knots
 
@@ -621,6 +631,7 @@ class GeneralizedPI:
         """theta, w and the map's coefficients by trust-region least squares, ridge ``alpha``
         on the feature weights (not on the constant)."""
         rows = np.arange(0, u.size, max(1, int(self.row_step)))
+        rows = rows[np.isfinite(y[rows])]
         p, kn = self.feature_mean_.size + 1, self.knots_
         k = kn.size + 1
         t = rows * self.dt_s
@@ -695,19 +706,25 @@ class GeneralizedPI:
         z = A @ w
         slope = hinge_slope(z, self.knots_, c)
         target = y - hinge_basis(z, self.knots_) @ c + slope * z
-        edges = np.linspace(0, u.size, int(self.n_folds) + 1).round().astype(int)
+        obs = np.isfinite(y)
+        # folds of equal measured rows, each contiguous in time
+        at = np.flatnonzero(obs)
+        cuts = np.linspace(0, at.size, int(self.n_folds) + 1).round().astype(int)
+        edges = np.append(at[cuts[:-1]], u.size)
         sse = np.zeros(len(self.alphas))
         for a, b in zip(edges[:-1], edges[1:], strict=True):
-            train = np.ones(u.size, dtype=bool)
+            train = obs.copy()
             train[a:b] = False
             D = A[train] * slope[train, None]
             U, s, Vt = np.linalg.svd(D, full_matrices=False)
             proj = U.T @ target[train]
+            held = obs[a:b]
             for i, alpha in enumerate(self.alphas):
                 # the constant is penalised too, lightly: alpha * n is tiny beside its s^2
                 wa = Vt.T @ (s / (s ** 2 + alpha * train.sum()) * proj)
-                sse[i] += np.sum((hinge_basis(A[a:b] @ wa, self.knots_) @ c - y[a:b]) ** 2)
-        rmse = np.sqrt(sse / u.size)
+                sse[i] += np.sum((hinge_basis(A[a:b][held] @ wa, self.knots_) @ c
+                                  - y[a:b][held]) ** 2)
+        rmse = np.sqrt(sse / at.size)
         best = int(np.argmin(rmse))
         return CvResult(self.alphas, tuple(float(v) for v in rmse), self.alphas[best],
                         int(self.n_folds))

@@ -153,8 +153,8 @@ class GainChange(Candidate):
 
     def around(self, model, rec):
         m = copy.deepcopy(model)
-        y0 = m.simulate(rec.u_v[rec.fit])
-        k = float(y0 @ rec.y_mm[rec.fit] / (y0 @ y0))
+        y0 = m.simulate(rec.u_fit)[rec.fit_obs]
+        k = float(y0 @ rec.y_fit[rec.fit_obs] / (y0 @ y0))
         m.map_coef_ = m.map_coef_ * k
         return Fitted(m, {"gain": k})
 
@@ -254,3 +254,48 @@ def test_the_next_experiment_makes_creep_delay_and_dead_zone_testable():
     assert [C[n].not_testable(rec2, model2, False) for n in names] == [None] * 3
     held = [p for p in x.parts if p.start_s >= rec2.cut * rec2.dt_s - 1e-9]
     assert {p.effect for p in held} == set(names)
+
+
+def test_records_are_joined_by_unmeasured_rests_and_each_split_the_same_way():
+    a, b = plant_record({}, 60.0, 1), plant_record({}, 90.0, 2, holds=True)
+    cfg = DiagnosisConfig()
+    rec = DiagnosisRecord.joined([("a", a.t_s, a.u_v, a.y_mm), ("b", b.t_s, b.u_v, b.y_mm)],
+                                 cfg)
+    sa, sb = rec.segments
+    assert (sa.start, sa.cut, sa.stop) == (0, 2100, 3000)
+    assert sb.start > sa.stop and sb.cut - sb.start == 3150 and sb.stop == rec.u_v.size
+    rest = slice(sa.stop, sb.start)
+    assert np.all(rec.u_v[rest] == 0.0) and np.all(np.isnan(rec.y_mm[rest]))
+    np.testing.assert_array_equal(rec.y_mm[sb.start:sb.stop], b.y_mm)
+    # fits run up to the last fit row and see only the fit rows; judging sees held rows only
+    assert rec.fit_end == sb.cut and rec.fit_obs.sum() == 2100 + 3150
+    assert np.all(np.isnan(rec.y_fit[~rec.fit_obs]))
+    assert not np.any(rec.judged & ~rec.held_rows) and rec.held_rows.sum() == 900 + 1350
+    # the holds of the record that has them count, each in its own part
+    alone = DiagnosisRecord(b.t_s, b.u_v, b.y_mm, cfg).excitation
+    assert (rec.excitation.holds_fit, rec.excitation.holds_held) == \
+        (alone.holds_fit, alone.holds_held)
+    fast = plant_record({}, 10.0, 3)
+    with pytest.raises(ValueError, match="Hz"):
+        DiagnosisRecord.joined([("a", a.t_s, a.u_v, a.y_mm),
+                                ("c", fast.t_s / 2, fast.u_v, fast.y_mm)], cfg)
+
+
+def test_cli_diagnoses_records_together_and_says_which_decided(tmp_path, capsys):
+    """Creep is not testable on a record without holds; with a second record that has them,
+    both are fitted and judged together and creep is named."""
+    fx = {"creep": {"tau_s": 12.0, "gain_mm_per_v": -0.6}}
+    moving = save_csv(plant_record(fx, 150.0, 1), tmp_path / "moving.csv")
+    held = save_csv(plant_record(fx, 150.0, 4, holds=True), tmp_path / "held.csv")
+    out = tmp_path / "report"
+    assert main(["--data", str(moving), "--data", str(held), "--report", str(out),
+                 "--effects", "creep", "drift"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["effects_found"][:1] == ["creep"]
+    assert [r["name"] for r in s["records"]] == [str(moving), str(held)]
+    assert all(r["rmse_after_mm"] < r["rmse_before_mm"] for r in s["records"])
+    creep = next(r for r in s["candidates"] if r["name"] == "creep")["evidence"]
+    assert [r["record"] for r in creep["records"]] == [str(moving), str(held)]
+    report = (out / "report.md").read_text()
+    assert "Which record decided creep" in report and "joined in this order" in report
+    assert "effects found: creep" in capsys.readouterr().out

@@ -323,3 +323,26 @@ def test_the_charging_current_channel_steps_as_it_simulates():
     st = m.stepper()
     assert np.allclose([st.step(v) for v in u], m.simulate(u), atol=1e-9)
 
+
+
+def test_rows_not_measured_are_run_through_and_left_out_of_the_fit():
+    """NaN in y marks rows without a measurement: the model runs over them (its state goes
+    on) and is fitted on the rest; a spoiled stretch marked NaN does not spoil the fit."""
+    _, u = random_sine(80.0, 50.0, 2.5, (0.05, 1.0), 8, seed=3)
+    y = IpmcPlant(seed=3, dt_s=0.02).run(u).y_mm
+    gap = slice(1500, 2500)
+    spoiled = y.copy()
+    spoiled[gap] += 20.0
+    kw = dict(dt_s=0.02, delay_s=0.0, max_nfev=15, start_tau_factors=(1.0,))
+    marked = spoiled.copy()
+    marked[gap] = np.nan
+    clean_rows = np.ones(u.size, dtype=bool)
+    clean_rows[gap] = False
+    with_nan = GeneralizedPI(**kw).fit(u, marked)
+    with_spoil = GeneralizedPI(**kw).fit(u, spoiled)
+    e_nan = _rmse(with_nan.simulate(u)[clean_rows], y[clean_rows])
+    e_spoil = _rmse(with_spoil.simulate(u)[clean_rows], y[clean_rows])
+    assert np.isfinite(with_nan.train_rmse_) and e_nan < 0.1 < e_spoil
+    assert with_nan.train_rmse_ == pytest.approx(e_nan, rel=1e-9)
+    with pytest.raises(ValueError, match="NaN"):
+        GeneralizedPI(**kw).fit(u, np.where(clean_rows, y, np.inf))

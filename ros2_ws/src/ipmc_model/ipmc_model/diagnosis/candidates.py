@@ -103,7 +103,7 @@ def refit_with(model: GeneralizedPI, rec: DiagnosisRecord, **changes) -> General
     """``model``'s hyperparameters with ``changes``, fitted on the fit rows as the model was
     (its ridge weight chosen again by the blocked free-run CV)."""
     m = GeneralizedPI(**{**model.get_params(), **changes})
-    return m.fit(rec.u_v[rec.fit], rec.y_mm[rec.fit])
+    return m.fit(rec.u_fit, rec.y_fit)
 
 
 #: Trust-region iterations of the quick fits that scan a block's parameter (the final fit at
@@ -115,7 +115,7 @@ def scan_error(model: GeneralizedPI, rec: DiagnosisRecord, **changes) -> float:
     """Fit-part RMSE of a quick refit of ``model`` with ``changes`` (ridge weight kept)."""
     params = {**model.get_params(), **changes, "alphas": (model.cv_.alpha,),
               "max_nfev": SCAN_NFEV}
-    return GeneralizedPI(**params).fit(rec.u_v[rec.fit], rec.y_mm[rec.fit]).train_rmse_
+    return GeneralizedPI(**params).fit(rec.u_fit, rec.y_fit).train_rmse_
 
 
 def descend_delay(model: GeneralizedPI, rec: DiagnosisRecord, start: int, lo: int, hi: int
@@ -159,9 +159,10 @@ def with_new_columns(model: GeneralizedPI, rec: DiagnosisRecord, change, iterati
     change(m)
     old = dict(zip(feature_names(model), range(model.feature_mean_.size), strict=True))
     names = feature_names(m)
-    u, y = rec.u_v[rec.fit], rec.y_mm[rec.fit]
+    u, y, obs = rec.u_fit, rec.y_fit, rec.fit_obs
     F = m._raw_features(u, m._theta)
-    mean, scale = F.mean(axis=0), np.where(F.std(axis=0) > 0, F.std(axis=0), 1.0)
+    mean, std = F[obs].mean(axis=0), F[obs].std(axis=0)
+    scale = np.where(std > 0, std, 1.0)
     w = np.zeros(len(names) + 1)
     w[-1] = model.weights_[-1]
     for j, n in enumerate(names):
@@ -177,14 +178,14 @@ def with_new_columns(model: GeneralizedPI, rec: DiagnosisRecord, change, iterati
         r = y - m.output_stage(hinge_basis(z, m.knots_) @ m.map_coef_,
                                np.arange(u.size) * rec.dt_s)
         J = A[:, new] * hinge_slope(z, m.knots_, m.map_coef_)[:, None]
-        w[new] += np.linalg.lstsq(J, r, rcond=None)[0]
+        w[new] += np.linalg.lstsq(J[obs], r[obs], rcond=None)[0]
     m.weights_ = w
     return m
 
 
 def fit_sse(model: GeneralizedPI, rec: DiagnosisRecord) -> float:
     """Free-run squared error of ``model`` on the fit rows."""
-    e = model.simulate(rec.u_v[rec.fit]) - rec.y_mm[rec.fit]
+    e = (model.simulate(rec.u_fit) - rec.y_fit)[rec.fit_obs]
     return float(e @ e)
 
 
@@ -311,15 +312,15 @@ def creep_profile(before: GeneralizedPI, rec: DiagnosisRecord, n_taus: int = 9) 
     lo, hi = rec.config.creep_min_tau_s / 3.0, rec.excitation.fit_span_s / MIN_SPANS_PER_TAU
     grid = np.geomspace(lo, hi, n_taus)
     params = {**before.get_params(), "alphas": (before.cv_.alpha,), "max_nfev": SCAN_NFEV}
-    u, y = rec.u_v[rec.fit], rec.y_mm[rec.fit]
+    u, y, obs = rec.u_fit, rec.y_fit, rec.fit_obs
     fits = [GeneralizedPI(**{**params, "output_taus_s": (*before.output_taus_s, float(t))}
                           ).fit(u, y) for t in grid]
-    sse = np.array([m.train_rmse_ ** 2 * u.size for m in fits])
+    sse = np.array([m.train_rmse_ ** 2 * obs.sum() for m in fits])
     k = int(np.argmin(sse))
-    n_eff = effective_samples(fits[k].simulate(u) - y)
+    n_eff = effective_samples((fits[k].simulate(u) - y)[obs])
     # the gain's Wald half-width at each tau: its channel's energy against the residual
     # variance per effective sample
-    energy = np.array([np.sum(lowpass_bank(m._charge(u, m._theta), (t,), rec.dt_s)[0] ** 2)
+    energy = np.array([np.sum(lowpass_bank(m._charge(u, m._theta), (t,), rec.dt_s)[0][obs] ** 2)
                        for m, t in zip(fits, grid, strict=True)])
     halves = 1.96 * np.sqrt(sse / n_eff / energy)
     x, step = np.log(grid), float(np.log(grid[1] / grid[0]))
@@ -388,13 +389,13 @@ def creep_estimate(base: GeneralizedPI, rec: DiagnosisRecord) -> dict:
     chi2(1) 0.95 of its minimum) and the gain's the Wald one at that tau, both with the
     residual's effective sample size (:func:`effective_samples`): the residual of a free run
     is far from white, and n alone would make the intervals too narrow."""
-    u, y = rec.u_v[rec.fit], rec.y_mm[rec.fit]
-    r = y - base.simulate(u)
+    u, obs = rec.u_fit, rec.fit_obs
+    r = (rec.y_fit - base.simulate(u))[obs]
     v = base._charge(u, base._theta)
     lo, hi = rec.config.creep_min_tau_s / 3.0, rec.excitation.fit_span_s / MIN_SPANS_PER_TAU
 
     def fit(tau: float) -> tuple[float, float, np.ndarray]:
-        x = lowpass_bank(v, (tau,), rec.dt_s)[0][:, 0]
+        x = lowpass_bank(v, (tau,), rec.dt_s)[0][obs, 0]
         g = float(x @ r / (x @ x))
         return float(np.sum((r - g * x) ** 2)), g, x
 
@@ -425,9 +426,10 @@ def fit_drift(model: GeneralizedPI, rec: DiagnosisRecord) -> GeneralizedPI:
     m.drift_gain_per_s_ = m.drift_offset_mm_per_s_ = 0.0
     lim = m.limit_mm_
     m.limit_mm_ = math.inf
-    y0 = m.simulate(rec.u_v[rec.fit])
-    t = np.arange(y0.size) * rec.dt_s
-    y = rec.y_mm[rec.fit]
+    obs = rec.fit_obs
+    y0 = m.simulate(rec.u_fit)
+    t = (np.arange(y0.size) * rec.dt_s)[obs]
+    y0, y = y0[obs], rec.y_fit[obs]
     if math.isfinite(lim):  # fit where the limit is undone
         y = lim * np.arctanh(np.clip(y / lim, -0.999, 0.999))
     g, o = np.linalg.lstsq(np.column_stack([y0 * t, t]), y - y0, rcond=None)[0]
@@ -479,8 +481,8 @@ class Delay(Candidate):
 
     def refit(self, model, rec):
         c = rec.config
-        u = dead_zone(rec.u_v[rec.fit], model.dead_zone_v)
-        d = estimate_delay(u, rec.y_mm[rec.fit], rec.dt_s, model.memory_taus_s_,
+        u = dead_zone(rec.u_fit, model.dead_zone_v)
+        d = estimate_delay(u, rec.y_fit, rec.dt_s, model.memory_taus_s_,
                            int(round(c.max_delay_s / rec.dt_s)))
         lo, hi = model.delay_samples_ + MIN_DELAY_SAMPLES, int(round(c.max_delay_s / rec.dt_s))
         d, scan = descend_delay(model, rec, max(d, lo), lo, hi)
@@ -584,11 +586,11 @@ class Asymmetry(Candidate):
     def around(self, model, rec):
         m = copy.deepcopy(model)
         m.negative_gain_ = 1.0
-        y0 = m.simulate(rec.u_v[rec.fit])
+        y0 = m.simulate(rec.u_fit)[rec.fit_obs]
         neg = y0 < 0
         if neg.sum() < 10:
             return "the model's output is hardly ever negative on the fit part"
-        y = rec.y_mm[rec.fit]
+        y = rec.y_fit[rec.fit_obs]
         m.negative_gain_ = float(np.clip((y0[neg] @ y[neg]) / (y0[neg] @ y0[neg]), 0.05, 20))
         return Fitted(m, {"negative_gain_ratio": m.negative_gain_ / model.negative_gain_})
 
@@ -602,6 +604,6 @@ class Saturation(Candidate):
         return None if given else OWN_MAP_REASON.format(what="soft limit")
 
     def around(self, model, rec):
-        peak = float(np.max(np.abs(model.simulate(rec.u_v[rec.fit]))))
+        peak = float(np.max(np.abs(model.simulate(rec.u_fit)[rec.fit_obs])))
         m, lim = scalar_around(model, rec, "limit_mm_", 0.3 * peak, 10.0 * peak)
         return Fitted(m, {"limit_mm": lim})

@@ -1,4 +1,10 @@
-"""The record under diagnosis: its fit / held-out split and what its excitation can show."""
+"""The records under diagnosis: their fit / held-out split and what their excitation can show.
+
+One record or several (another day's, an experiment's) are joined into one: in that order,
+each separated by a rest at 0 V whose output is not measured. Every model runs over the
+whole, is fitted on the fit rows (the first share of each record) and judged on the free run
+over the held-out rows (the rest of each); each record is split the same way.
+"""
 
 from __future__ import annotations
 
@@ -12,10 +18,14 @@ from ipmc_driver.validation import as_signal, same_length
 from ..residuals import find_holds, noise_floor
 from .config import DiagnosisConfig
 
+#: The rest between joined records lasts this many of the shortest creep time constant: the
+#: core's relaxations and a creep at that time constant have settled there (e^-5 < 1 %).
+REST_TAUS = 5.0
+
 
 @dataclass(frozen=True)
 class Excitation:
-    """What the input of the record can show: holds (creep), steps (delay), time near 0 V
+    """What the input of the records can show: holds (creep), steps (delay), time near 0 V
     (dead zone), its range and the sensor's noise floor."""
 
     span_s: float
@@ -33,71 +43,159 @@ class Excitation:
         return asdict(self)
 
 
+@dataclass(frozen=True)
+class Segment:
+    """One record's rows in the joined record: [start, stop), held out from ``cut`` on."""
+
+    name: str
+    start: int
+    stop: int
+    cut: int
+
+
+def _checked(name: str, t_s, u_v, y_mm) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    t, u, y = (as_signal(f"{name}: {k}", v) for k, v in
+               (("t_s", t_s), ("u_v", u_v), ("y_mm", y_mm)))
+    same_length(t_s=t, u_v=u, y_mm=y)
+    if u.size < 200:
+        raise ValueError(f"{name}: {u.size} samples are too few to diagnose (at least 200)")
+    dt = np.diff(t)
+    if not np.all(dt > 0):
+        raise ValueError(f"{name}: the time stamps must increase")
+    return t, u, y, float(np.median(dt))
+
+
 class DiagnosisRecord:
     """Time (s), voltage (V) and tip (mm) of one record, split at ``cut``: the model and every
-    block are fitted on ``[:cut]`` and judged on the free run over ``[cut:]``."""
+    block are fitted on ``[:cut]`` and judged on the free run over ``[cut:]``.
+    :meth:`joined` makes one of several records."""
 
-    def __init__(self, t_s, u_v, y_mm, config: DiagnosisConfig):
-        self.t_s, self.u_v, self.y_mm = (as_signal(n, v) for n, v in
-                                         (("t_s", t_s), ("u_v", u_v), ("y_mm", y_mm)))
-        same_length(t_s=self.t_s, u_v=self.u_v, y_mm=self.y_mm)
-        if self.u_v.size < 200:
-            raise ValueError(f"{self.u_v.size} samples are too few to diagnose (at least 200)")
-        dt = np.diff(self.t_s)
-        if not np.all(dt > 0):
-            raise ValueError("the time stamps must increase")
-        self.dt_s = float(np.median(dt))
+    def __init__(self, t_s, u_v, y_mm, config: DiagnosisConfig, name: str = "record"):
+        self._build([(name, t_s, u_v, y_mm)], config)
+
+    @classmethod
+    def joined(cls, records, config: DiagnosisConfig) -> DiagnosisRecord:
+        """Several records ``(name, t_s, u_v, y_mm)``, in order, joined by rests at 0 V."""
+        out = cls.__new__(cls)
+        out._build(list(records), config)
+        return out
+
+    def _build(self, records: list, config: DiagnosisConfig) -> None:
+        if not records:
+            raise ValueError("no record to diagnose")
+        checked = [(name, *_checked(name, *sig)) for name, *sig in records]
+        self.dt_s = checked[0][4]
+        for name, *_, dt in checked[1:]:
+            if abs(dt - self.dt_s) > 0.01 * self.dt_s:
+                raise ValueError(f"{name} is sampled at {1 / dt:.4g} Hz and {checked[0][0]} at "
+                                 f"{1 / self.dt_s:.4g} Hz; resample one to the other's rate")
+        rest = int(round(REST_TAUS * config.creep_min_tau_s / self.dt_s))
+        u, y, segs, start = [], [], [], 0
+        for i, (name, _, ui, yi, _) in enumerate(checked):
+            if i:
+                u.append(np.zeros(rest))
+                y.append(np.full(rest, np.nan))
+                start += rest
+            u.append(ui)
+            y.append(yi)
+            segs.append(Segment(name, start, start + ui.size,
+                                start + int(round(config.fit_share * ui.size))))
+            start += ui.size
+        self.u_v, self.y_mm = np.concatenate(u), np.concatenate(y)
+        self.t_s = checked[0][1][0] + np.arange(self.u_v.size) * self.dt_s
+        if len(checked) == 1:
+            self.t_s = checked[0][1]
         if np.ptp(self.u_v) == 0.0:
             raise ValueError("the input is constant: nothing can be identified from it")
-        self.config = config
-        self.cut = int(round(config.fit_share * self.u_v.size))
+        self.config, self.segments = config, tuple(segs)
+        self.fit_rows = np.zeros(self.u_v.size, dtype=bool)
+        self.held_rows = np.zeros(self.u_v.size, dtype=bool)
+        for s in segs:
+            self.fit_rows[s.start:s.cut] = True
+            self.held_rows[s.cut:s.stop] = True
         self.judged = self._judged()
         self.excitation = self._excitation()
 
+    # -- rows ----------------------------------------------------------------------------
+    @property
+    def fit_end(self) -> int:
+        """One past the last fit row: fits run over ``[:fit_end]``."""
+        return int(np.flatnonzero(self.fit_rows)[-1]) + 1
+
+    @property
+    def cut(self) -> int:
+        """A single record's first held-out row."""
+        return self.segments[0].cut if len(self.segments) == 1 else self.fit_end
+
+    @property
+    def u_fit(self) -> np.ndarray:
+        """The input the fits run over (every row up to the last fit row)."""
+        return self.u_v[:self.fit_end]
+
+    @property
+    def y_fit(self) -> np.ndarray:
+        """The output the fits see: NaN (not measured) on the rows that are not fit rows."""
+        return np.where(self.fit_rows, self.y_mm, np.nan)[:self.fit_end]
+
+    @property
+    def fit_obs(self) -> np.ndarray:
+        """Which rows of ``u_fit`` are fit rows."""
+        return self.fit_rows[:self.fit_end]
+
     def whole(self) -> DiagnosisRecord:
-        """This record with every row in the fit part: where a parameter is estimated once
-        the held-out rows have decided."""
+        """These records with every measured row a fit row: where a parameter is estimated
+        once the held-out rows have decided."""
         out = copy.copy(self)
-        out.cut = self.u_v.size
+        out.fit_rows = self.fit_rows | self.held_rows
+        out.held_rows = np.zeros_like(self.held_rows)
+        out.segments = tuple(replace(s, cut=s.stop) for s in self.segments)
         out.excitation = replace(self.excitation, fit_span_s=self.excitation.span_s)
         return out
 
-    @property
-    def fit(self) -> slice:
-        return slice(0, self.cut)
+    def judged_error(self, y_model: np.ndarray) -> np.ndarray:
+        """``y_model - y`` over the judged held-out rows (``y_model`` over every row)."""
+        return (y_model - self.y_mm)[self.judged]
 
-    @property
-    def held(self) -> slice:
-        return slice(self.cut, None)
-
+    # -- what the excitation can show ------------------------------------------------------
     def _excitation(self) -> Excitation:
-        c, u = self.config, self.u_v
-        holds = find_holds(u, self.dt_s, c.hold_min_s)
-        jumps = np.abs(np.diff(u[:self.cut])) >= c.step_share * np.ptp(u)
+        c, u, dt = self.config, self.u_v, self.dt_s
+        holds_fit = holds_held = steps = 0
+        for s in self.segments:
+            ui = u[s.start:s.stop]
+            for a, b in find_holds(ui, dt, c.hold_min_s):
+                holds_fit += b <= s.cut - s.start
+                holds_held += a >= s.cut - s.start
+            jumps = np.abs(np.diff(ui[:s.cut - s.start])) >= c.step_share * np.ptp(ui)
+            steps += int(np.sum(jumps[1:] & ~jumps[:-1]) + (jumps[0] if jumps.size else 0))
+        measured = self.fit_rows | self.held_rows
+        fit_u = u[self.fit_rows]
         return Excitation(
-            span_s=u.size * self.dt_s, fit_span_s=self.cut * self.dt_s,
-            holds_fit=sum(1 for a, b in holds if b <= self.cut),
-            holds_held=sum(1 for a, b in holds if a >= self.cut),
-            steps_fit=int(np.sum(jumps[1:] & ~jumps[:-1]) + (jumps[0] if jumps.size else 0)),
-            near_zero_share=float(np.mean(np.abs(u[:self.cut]) < c.dead_zone_max_v)),
-            u_min_v=float(u.min()), u_max_v=float(u.max()),
-            noise_floor_mm=noise_floor(self.y_mm), judged_share=float(self.judged.mean()))
+            span_s=max(s.stop - s.start for s in self.segments) * dt,
+            fit_span_s=max(s.cut - s.start for s in self.segments) * dt,
+            holds_fit=holds_fit, holds_held=holds_held, steps_fit=steps,
+            near_zero_share=float(np.mean(np.abs(fit_u) < c.dead_zone_max_v)),
+            u_min_v=float(u[measured].min()), u_max_v=float(u[measured].max()),
+            noise_floor_mm=noise_floor(self.y_mm[measured]),
+            judged_share=float(self.judged.sum() / max(1, self.held_rows.sum())))
 
     def _judged(self) -> np.ndarray:
-        """Held-out rows the decision uses: those whose voltage stayed within the fit part's
+        """Held-out rows the decision uses: those whose voltage stayed within the fit rows'
         range for the last ``settle_s`` (beyond it every model extrapolates, and a block can
         win there by extrapolating differently, not by being the effect)."""
-        lo, hi = self.u_v[:self.cut].min(), self.u_v[:self.cut].max()
+        fit_u = self.u_v[self.fit_rows]
+        lo, hi = fit_u.min(), fit_u.max()
         out = ((self.u_v < lo) | (self.u_v > hi)).astype(float)
         n = max(1, int(round(self.config.settle_s / self.dt_s)))
         recent = np.convolve(out, np.ones(n), mode="full")[:out.size] > 0
-        judged = ~recent[self.cut:]
-        return judged if judged.mean() >= 0.5 else np.ones_like(judged)
+        judged = self.held_rows & ~recent
+        return judged if judged.sum() >= 0.5 * self.held_rows.sum() else self.held_rows.copy()
 
     def power_share_above(self, f_hz: float) -> float:
-        """Share of the fit part's input power (mean removed) above ``f_hz``."""
-        x = self.u_v[:self.cut] - self.u_v[:self.cut].mean()
-        p = np.abs(np.fft.rfft(x)) ** 2
-        f = np.fft.rfftfreq(x.size, self.dt_s)
-        total = float(p[1:].sum())
-        return float(p[f > f_hz].sum() / total) if total > 0 else 0.0
+        """Share of the fit parts' input power (each part's mean removed) above ``f_hz``."""
+        above = total = 0.0
+        for s in self.segments:
+            x = self.u_v[s.start:s.cut] - self.u_v[s.start:s.cut].mean()
+            p = np.abs(np.fft.rfft(x)) ** 2
+            f = np.fft.rfftfreq(x.size, self.dt_s)
+            above, total = above + float(p[f > f_hz].sum()), total + float(p[1:].sum())
+        return above / total if total > 0 else 0.0

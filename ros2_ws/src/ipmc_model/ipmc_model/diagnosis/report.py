@@ -15,12 +15,13 @@ from ..persistence import save_model
 from .candidates import CANDIDATES
 from .results import Diagnosis, Outcome
 
-METRIC = ("free-run RMSE (mm) on the held-out last {held:.0f} % of the record, the model run "
-          "from the record's start on its input alone")
+METRIC = ("free-run RMSE (mm) on the held-out last {held:.0f} % of the record (of each record, "
+          "when several are diagnosed), the model run from the record's start on its input "
+          "alone")
 
 RULE = ("An effect is accepted when the current model with its block, fitted on the same fit "
         "rows as the current model, has less squared free-run error on the held-out rows "
-        "(those within the fit part's voltage range for the last {settle:g} s): the "
+        "(those within the fit rows' voltage range for the last {settle:g} s): the "
         "Diebold-Mariano test of the loss differential (HAC variance, Bartlett kernel, bandwidth "
         "covering the differential's own autocorrelation, Harvey-Leybourne-Newbold factor, "
         "one-sided), Holm's step-down at a family-wise {alpha:g} over the round's testable "
@@ -85,10 +86,19 @@ def summary_of(d: Diagnosis, paths: dict) -> dict:
                     "accepted": r.accepted, "results": [x.as_dict() for x in r.results]}
                    for r in d.rounds],
         "excitation": d.excitation,
+        "records": _records(d),
         "config": c.as_dict(),
         "seconds": d.seconds,
         **paths,
     })
+
+
+def _records(d: Diagnosis) -> list[dict]:
+    """Each record's rows and its held-out RMSE before and after."""
+    before, after = d.record_rmse(d.model_before), d.record_rmse(d.model_after)
+    return [{"name": s.name, "samples": s.stop - s.start, "fit_samples": s.cut - s.start,
+             "rmse_before_mm": before[s.name], "rmse_after_mm": after[s.name]}
+            for s in d.segments]
 
 
 def write_report(d: Diagnosis, out_dir, data_label: str = "data") -> dict:
@@ -122,12 +132,17 @@ def _cell(x, fmt: str) -> str:
 def markdown(d: Diagnosis, s: dict, label: str, figure: str | None) -> str:
     """The report: the record, the rule, each round, what to record next, the thresholds."""
     ex, c = d.excitation, d.config
-    n, rate = d.u_v.size, 1.0 / d.model_before.dt_s
+    rate = 1.0 / d.model_before.dt_s
     base = "the given model (frozen; blocks fitted around it)" if d.given_model else \
         "the core GPI model (charging, back-relaxation, path memory; no delay, no creep)"
+    split = "; ".join(f"{s.name}: {s.stop - s.start} samples, fitted on the first "
+                      f"{s.cut - s.start}, judged on the last {s.stop - s.cut}"
+                      for s in d.segments)
+    joined = (" (joined in this order, each after a rest at 0 V whose output is not measured)"
+              if len(d.segments) > 1 else "")
     lines = [f"# Residual diagnosis of `{label}`", "",
-             f"{n} samples at {rate:.4g} Hz; fitted on the first {d.cut}, judged on the last "
-             f"{n - d.cut}. Starting model: {base}. Noise floor {d.noise_floor_mm:.4f} mm. "
+             f"At {rate:.4g} Hz{joined}: {split}. Starting model: {base}. Noise floor "
+             f"{d.noise_floor_mm:.4f} mm. "
              f"Holds of {c.hold_min_s:g} s or more: {ex['holds_fit']} in the fit part, "
              f"{ex['holds_held']} held out; steps in the fit part: {ex['steps_fit']}. "
              f"Run time {d.seconds:.1f} s.", "",
@@ -150,6 +165,7 @@ def markdown(d: Diagnosis, s: dict, label: str, figure: str | None) -> str:
                          f"{_cell(ev and ev.test.p_value, '.2g')} | "
                          f"{_cell(ev and ev.p_holm, '.2g')} | {params} |")
         lines += [""] + [f"- {r.name}: {r.reason}." for r in rnd.results] + [""]
+        lines += _decided_by(rnd)
     untestable = [r for r in d.candidates if r.outcome is Outcome.NOT_TESTABLE]
     if untestable:
         lines += ["## Not testable on this record", ""]
@@ -165,6 +181,19 @@ def markdown(d: Diagnosis, s: dict, label: str, figure: str | None) -> str:
               f"`{Path(s['model_after']).name}` (after; GPI model files, served by "
               "model_server and inverted by ipmc identify --inverse --effects-from).", ""]
     return "\n".join(lines)
+
+
+def _decided_by(rnd) -> list[str]:
+    """Which record decided the round's accepted effect (when several are diagnosed)."""
+    res = next((r for r in rnd.results if r.accepted), None)
+    if res is None or res.evidence is None or not res.evidence.records:
+        return []
+    lines = [f"Which record decided {res.name}:", "",
+             "| record | held-out RMSE before (mm) | with it (mm) | mean gain (mm^2) |",
+             "|---|---|---|---|"]
+    lines += [f"| {r.record} | {r.rmse_current_mm:.4f} | {r.rmse_candidate_mm:.4f} | "
+              f"{r.mean_gain_mm2:.3g} |" for r in res.evidence.records]
+    return lines + [""]
 
 
 def _experiment_lines(x) -> list[str]:
@@ -195,10 +224,11 @@ def _figure(d: Diagnosis, out: Path) -> str | None:
         import matplotlib.pyplot as plt
     except ImportError:
         return None
-    t = d.t_s[d.cut:]
-    y = d.y_mm[d.cut:]
-    before = d.model_before.simulate(d.u_v)[d.cut:]
-    after = d.model_after.simulate(d.u_v)[d.cut:]
+    # the held-out rows, with a break between records
+    t = d.t_s
+    y = np.where(d.held_rows, d.y_mm, np.nan)
+    before = np.where(d.held_rows, d.model_before.simulate(d.u_v), np.nan)
+    after = np.where(d.held_rows, d.model_after.simulate(d.u_v), np.nan)
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(9, 5.5), sharex=True)
     a1.plot(t, y, "k", lw=0.8, label="measured")
     a1.plot(t, before, lw=0.8, label="before")

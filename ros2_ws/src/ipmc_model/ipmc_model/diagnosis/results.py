@@ -54,6 +54,17 @@ class FitScreen:
 
 
 @dataclass(frozen=True)
+class RecordShare:
+    """One joined record's part in a candidate's test: its judged held-out RMSE with the
+    current model and with the candidate, and the mean loss differential there (mm^2)."""
+
+    record: str
+    rmse_current_mm: float
+    rmse_candidate_mm: float
+    mean_gain_mm2: float
+
+
+@dataclass(frozen=True)
 class Evidence:
     """What one candidate showed in one round."""
 
@@ -64,6 +75,8 @@ class Evidence:
     scan: str = ""
     p_holm: float = 1.0
     screen: FitScreen | None = None
+    #: Each record's share when several are diagnosed at once (which record decided).
+    records: tuple[RecordShare, ...] = ()
 
     def as_dict(self) -> dict:
         d = asdict(self)
@@ -105,12 +118,14 @@ class Round:
 
 @dataclass
 class Diagnosis:
-    """The whole diagnosis of one record."""
+    """The whole diagnosis of one record, or of several joined (``segments``: where each
+    is, rests at 0 V between them)."""
 
     t_s: np.ndarray
     u_v: np.ndarray
     y_mm: np.ndarray
-    cut: int
+    held_rows: np.ndarray
+    segments: tuple
     config: DiagnosisConfig
     given_model: bool
     model_before: GeneralizedPI
@@ -137,8 +152,14 @@ class Diagnosis:
         return list(last.values())
 
     def held_out_rmse(self, model: GeneralizedPI) -> float:
-        e = model.simulate(self.u_v)[self.cut:] - self.y_mm[self.cut:]
+        """Free-run RMSE (mm) over every held-out row."""
+        e = (model.simulate(self.u_v) - self.y_mm)[self.held_rows]
         return float(np.sqrt(np.mean(e ** 2)))
+
+    def record_rmse(self, model: GeneralizedPI) -> dict[str, float]:
+        """Free-run RMSE (mm) over each record's held-out rows."""
+        e = model.simulate(self.u_v) - self.y_mm
+        return {s.name: float(np.sqrt(np.mean(e[s.cut:s.stop] ** 2))) for s in self.segments}
 
     @property
     def rmse_before_mm(self) -> float:

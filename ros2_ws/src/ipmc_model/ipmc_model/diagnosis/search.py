@@ -20,7 +20,7 @@ from .config import DiagnosisConfig
 from .decision import holm, loss_differential_test, passes
 from .experiment import design_experiment
 from .record import DiagnosisRecord
-from .results import CandidateResult, Diagnosis, Evidence, FitScreen, Outcome, Round
+from .results import CandidateResult, Diagnosis, Evidence, FitScreen, Outcome, RecordShare, Round
 
 #: Trust-region iterations of the core model's fits and of its candidates' refits (with one
 #: start each): without direction memory the core converges within them, and every round
@@ -40,7 +40,7 @@ def core_model(rec: DiagnosisRecord, progress=None) -> GeneralizedPI:
     taus = tuple(t for t in DEFAULT_MEMORY_TAUS_S if t < rec.config.creep_min_tau_s)
     return GeneralizedPI(memory_taus_s=taus, delay_s=0.0, dt_s=rec.dt_s, direction_memory_v=(),
                          max_nfev=CORE_NFEV, start_tau_factors=(1.0,), progress=progress
-                         ).fit(rec.u_v[rec.fit], rec.y_mm[rec.fit])
+                         ).fit(rec.u_fit, rec.y_fit)
 
 
 def _given(model, rec: DiagnosisRecord) -> GeneralizedPI:
@@ -60,9 +60,27 @@ def _given(model, rec: DiagnosisRecord) -> GeneralizedPI:
 
 
 def held_error(model: GeneralizedPI, rec: DiagnosisRecord) -> np.ndarray:
-    """Free-run error (mm) over the judged held-out rows (within the fit part's voltage
+    """Free-run error (mm) over the judged held-out rows (within the fit rows' voltage
     range), the run starting at the record's start."""
-    return (model.simulate(rec.u_v)[rec.cut:] - rec.y_mm[rec.cut:])[rec.judged]
+    return rec.judged_error(model.simulate(rec.u_v))
+
+
+def per_record(current: GeneralizedPI, candidate: GeneralizedPI, rec: DiagnosisRecord
+               ) -> tuple[RecordShare, ...]:
+    """Each joined record's judged held-out RMSE with ``current`` and with ``candidate``
+    (none for a single record: the round's figures are its own)."""
+    if len(rec.segments) == 1:
+        return ()
+    y_cur, y_new = current.simulate(rec.u_v), candidate.simulate(rec.u_v)
+    out = []
+    for s in rec.segments:
+        rows = np.zeros(rec.u_v.size, dtype=bool)
+        rows[s.start:s.stop] = True
+        rows &= rec.judged
+        e_cur, e_new = (y_cur - rec.y_mm)[rows], (y_new - rec.y_mm)[rows]
+        out.append(RecordShare(s.name, _rms(e_cur), _rms(e_new),
+                               float(np.mean(e_cur ** 2 - e_new ** 2))))
+    return tuple(out)
 
 
 def _rms(e: np.ndarray) -> float:
@@ -101,7 +119,7 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
     cfg = rec.config
     e_cur = held_error(current, rec)
     margin = cfg.material_noise_share * rec.excitation.noise_floor_mm ** 2
-    r_fit = current.simulate(rec.u_v[rec.fit]) - rec.y_mm[rec.fit]
+    r_fit = (current.simulate(rec.u_fit) - rec.y_fit)[rec.fit_obs]
     sse_fit, n_eff = float(r_fit @ r_fit), effective_samples(r_fit)
     results, tested, untestable = {}, {}, {}
     for name in names:
@@ -117,7 +135,8 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
         test = loss_differential_test(e_cur, e_new, margin)
         screen = fit_screen(sse_fit, n_eff, CANDIDATES[name], out.model, rec, cfg.family_alpha)
         tested[name] = (out, Evidence(_rms(e_cur), _rms(e_new), test, out.params, out.scan,
-                                      screen=screen))
+                                      screen=screen,
+                                      records=per_record(current, out.model, rec)))
     # the family is the candidates the round may accept and the fit rows support; rivals
     # (not testable) are tested beside it
     screened = {n: ev for n, (_, ev) in tested.items() if ev.screen.passed}
@@ -174,10 +193,19 @@ def diagnose(t_s, u_v, y_mm, *, model=None, config: DiagnosisConfig | None = Non
     ``candidates``: names from :data:`CANDIDATES` (default all). ``progress(text)`` hears of
     each stage.
     """
+    return diagnose_records([("record", t_s, u_v, y_mm)], model=model, config=config,
+                            candidates=candidates, progress=progress)
+
+
+def diagnose_records(records, *, model=None, config: DiagnosisConfig | None = None,
+                     candidates=None, progress=None) -> Diagnosis:
+    """Diagnose several records ``(name, t_s, u_v, y_mm)`` at once, as :func:`diagnose` one:
+    every model is fitted on the fit parts of all (joined by rests at 0 V,
+    :class:`DiagnosisRecord`) and judged on the held-out parts of all."""
     say = progress or (lambda text: None)
     t0 = time.perf_counter()
     cfg = config or DiagnosisConfig()
-    rec = DiagnosisRecord(t_s, u_v, y_mm, cfg)
+    rec = DiagnosisRecord.joined(records, cfg)
     names = list(CANDIDATES if candidates is None else candidates)
     unknown = [n for n in names if n not in CANDIDATES]
     if unknown:
@@ -186,9 +214,11 @@ def diagnose(t_s, u_v, y_mm, *, model=None, config: DiagnosisConfig | None = Non
     if given:
         current = _given(model, rec)
     else:
-        say(f"fitting the core model on the first {rec.cut} samples")
+        say(f"fitting the core model on {int(rec.fit_rows.sum())} samples "
+            f"({', '.join(f'the first {s.cut - s.start} of {s.name}' for s in rec.segments)})")
         current = core_model(rec)
-    d = Diagnosis(rec.t_s, rec.u_v, rec.y_mm, rec.cut, cfg, given, current, current,
+    d = Diagnosis(rec.t_s, rec.u_v, rec.y_mm, rec.held_rows, rec.segments, cfg, given,
+                  current, current,
                   noise_floor_mm=rec.excitation.noise_floor_mm,
                   excitation=rec.excitation.as_dict())
     for number in range(1, cfg.max_rounds + 1):
