@@ -216,7 +216,8 @@ def _fmt(v) -> str:
 
 
 def _figure(d: Diagnosis, out: Path) -> str | None:
-    """The held-out part: measured and both models, and both residuals."""
+    """Each record's held-out part (one column each): measured and both models, and both
+    residuals."""
     try:
         import matplotlib
 
@@ -224,22 +225,23 @@ def _figure(d: Diagnosis, out: Path) -> str | None:
         import matplotlib.pyplot as plt
     except ImportError:
         return None
-    # the held-out rows, with a break between records
-    t = d.t_s
-    y = np.where(d.held_rows, d.y_mm, np.nan)
-    before = np.where(d.held_rows, d.model_before.simulate(d.u_v), np.nan)
-    after = np.where(d.held_rows, d.model_after.simulate(d.u_v), np.nan)
-    fig, (a1, a2) = plt.subplots(2, 1, figsize=(9, 5.5), sharex=True)
-    a1.plot(t, y, "k", lw=0.8, label="measured")
-    a1.plot(t, before, lw=0.8, label="before")
-    a1.plot(t, after, lw=0.8, label="after")
-    a1.set_ylabel("tip (mm)")
-    a1.legend(loc="upper right", fontsize=8)
-    a2.plot(t, y - before, lw=0.8, label=f"before, RMSE {d.rmse_before_mm:.4f} mm")
-    a2.plot(t, y - after, lw=0.8, label=f"after, RMSE {d.rmse_after_mm:.4f} mm")
-    a2.set_ylabel("residual (mm)")
-    a2.set_xlabel("time (s)")
-    a2.legend(loc="upper right", fontsize=8)
+    y_before, y_after = d.model_before.simulate(d.u_v), d.model_after.simulate(d.u_v)
+    n = len(d.segments)
+    fig, axes = plt.subplots(2, n, figsize=(9 if n == 1 else 4.5 * n, 5.5), sharex="col",
+                             sharey="row", squeeze=False)
+    for (a1, a2), s in zip(axes.T, d.segments, strict=True):
+        rows = slice(s.cut, s.stop)
+        t, y = d.t_s[rows] - d.t_s[s.start], d.y_mm[rows]
+        a1.plot(t, y, "k", lw=0.8, label="measured")
+        a1.plot(t, y_before[rows], lw=0.8, label="before")
+        a1.plot(t, y_after[rows], lw=0.8, label="after")
+        a2.plot(t, y - y_before[rows], lw=0.8, label=f"before, RMSE {d.rmse_before_mm:.4f} mm")
+        a2.plot(t, y - y_after[rows], lw=0.8, label=f"after, RMSE {d.rmse_after_mm:.4f} mm")
+        a2.set_xlabel(f"time in {Path(s.name).name} (s)" if n > 1 else "time (s)")
+    axes[0, 0].set_ylabel("tip (mm)")
+    axes[1, 0].set_ylabel("residual (mm)")
+    axes[0, -1].legend(loc="upper right", fontsize=8)
+    axes[1, -1].legend(loc="upper right", fontsize=8)
     fig.tight_layout()
     fig.savefig(out / "residual.png", dpi=110)
     plt.close(fig)
