@@ -8,9 +8,11 @@ it decides. Prints figures; not part of the pass/fail suite.
 Cases: a creep (tau 20 s) under a random sine (no holds); a transport delay (0.05 s) and a
 dead zone (0.3 V) under a smooth random sine (band 0.02-0.3 Hz: few fast components, no steps,
 no dwelling near 0 V); and the clean plant under a random sine. The clean plant's figure is the
-diagnosis's final held-out error on the clean plant under the last round's input, same seed:
-the error left when nothing is missing (goal: the investigation's final error within 1.2 x
-it); what the diagnosis found there is printed beside it.
+diagnosis's final held-out error on the clean plant under the last round's input, same seed
+(with ``--together``, every round's diagnosis takes every record so far, and the clean plant
+under every round's input is diagnosed the same way): the error left when nothing is missing
+(goal: the investigation's final error within 1.2 x it); what the diagnosis found there is
+printed beside it.
 """
 
 from __future__ import annotations
@@ -33,8 +35,8 @@ from ipmc_control.investigate import (
     residual_diagnoser,
 )
 from ipmc_control.investigate_report import write_investigation
-from ipmc_model.diagnosis import diagnose  # scipy's BLAS loaded before the thread limit
 from ipmc_model.diagnosis.experiment import ExperimentPart
+from ipmc_model.diagnosis.search import diagnose_records  # BLAS loaded before the limit
 
 SECONDS = 120.0
 
@@ -91,31 +93,38 @@ def found_params(inv: Investigation) -> str:
     return " | ".join(out) or "-"
 
 
-def clean_twin(inv: Investigation, rate_hz: float, seed: int) -> tuple[float, list[str]]:
-    """The clean plant under the last round's input (same seed): the diagnosis's final
-    held-out error and what it found there."""
+def clean_twin(inv: Investigation, rate_hz: float, seed: int, together: bool
+               ) -> tuple[float, list[str]]:
+    """The clean plant under the last round's input (every round's, ``together``), the same
+    seeds, diagnosed as the investigation's last round was: the final held-out error and what
+    it found there."""
     from ipmc_driver.plant import IpmcPlant
 
-    last = inv.rounds[-1]
-    run = IpmcPlant(effects=(), seed=seed + len(inv.rounds) - 1, dt_s=1.0 / rate_hz).run(
-        last.played.u_v)
-    d = diagnose(run.t_s, run.u_v, run.y_mm)
+    records = []
+    for i, rnd in enumerate(inv.rounds):
+        if not together and i < len(inv.rounds) - 1:
+            continue
+        run = IpmcPlant(effects=(), seed=seed + i, dt_s=1.0 / rate_hz).run(rnd.played.u_v)
+        records.append((f"round {i + 1}", run.t_s, run.u_v, run.y_mm))
+    d = diagnose_records(records)
     return d.rmse_after_mm, d.effects_found
 
 
-def run_case(case: Case, rate_hz: float, seed: int, out: Path) -> list[str]:
+def run_case(case: Case, rate_hz: float, seed: int, out: Path, together: bool = False
+             ) -> list[str]:
     """Investigate one case; the lines that report it."""
     runner = InProcessRunner(list(case.effects), seed=seed, rate_hz=rate_hz)
     first = (smooth_input(rate_hz, seed, out / "round_1") if case.smooth else
              first_input("random-sine", seconds=SECONDS, rate_hz=rate_hz, amplitude_v=3.0,
                          seed=seed, out_dir=out / "round_1"))
     t0 = time.perf_counter()
-    inv = investigate(runner, first, residual_diagnoser(), out, budget_s=20 * 60.0,
+    inv = investigate(runner, first, residual_diagnoser(together=together), out,
+                      budget_s=20 * 60.0,
                       progress=lambda text: print(f"  [{case.name}] {text}", file=sys.stderr,
                                                   flush=True))
     wall_s = time.perf_counter() - t0
     write_investigation(inv, out)
-    clean, clean_found = clean_twin(inv, rate_hz, seed)
+    clean, clean_found = clean_twin(inv, rate_hz, seed, together)
     lines = [f"{case.name}: plant {case.plant}; first input "
              f"{'smooth random sine' if case.smooth else 'random sine'} {SECONDS:g} s",
              f"  effects found: {', '.join(inv.effects_found) or 'none'}; "
@@ -147,11 +156,15 @@ def main() -> int:
                    help="cases to run (default all)")
     p.add_argument("--rate-hz", type=float, default=50.0)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--together", action="store_true",
+                   help="each round diagnoses every record so far at once (ipmc diagnose "
+                        "--data A --data B), not the newest record alone")
     args = p.parse_args()
     t0 = time.perf_counter()
     with threadpool_limits(1), tempfile.TemporaryDirectory() as tmp:
         for name in args.case or list(CASES):
-            for line in run_case(CASES[name], args.rate_hz, args.seed, Path(tmp) / name):
+            for line in run_case(CASES[name], args.rate_hz, args.seed, Path(tmp) / name,
+                                 args.together):
                 print(line, flush=True)
     print(f"total wall time {time.perf_counter() - t0:.0f} s at {args.rate_hz:g} Hz, seed "
           f"{args.seed}")

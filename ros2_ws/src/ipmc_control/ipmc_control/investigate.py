@@ -7,18 +7,17 @@ Round 1 plays a first excitation, records it and diagnoses the record (``ipmc di
 procedure). When the diagnosis leaves an effect undecided for lack of the input that shows it
 (creep without input holds, a delay without steps, a dead zone without slow crossings of 0 V),
 it proposes the experiment that decides it; the next round plays that experiment, records it
-and diagnoses the new record; and so on until nothing is undecided, an experiment left its
-effects as undecided as before, or the next experiment would overrun the budget of recorded
-minutes.
+and diagnoses it; and so on until nothing is undecided, an experiment left its effects as
+undecided as before, or the next experiment would overrun the budget of recorded minutes.
 
 Each new record is diagnosed on its own, from the diagnosis's core model refitted on its fit
 part: the experiment repeats the probes in its held-out part after an identification input,
 so that record alone judges every candidate on the excitation that shows it, whereas blocks
 fitted around the earlier record's frozen model would be judged against that model's errors.
-Diagnosing all the records together (``ipmc diagnose --data A --data B``) fits one core model
-to both excitations instead; with the core model as it is that joint fit extrapolates worse
-on the experiment's repeated probes than the experiment's own fit, and a creep the experiment
-decides alone is then left below significance (``benchmarks/bench_investigate.py``).
+Diagnosing all the records together (``ipmc diagnose --data A --data B``;
+``residual_diagnoser(together=True)``) fits one core model to every excitation instead; with
+the core model as it is, that joint fit extrapolates worse on the experiment's repeated
+probes than the experiment's own fit (``benchmarks/bench_investigate.py --together``).
 
 The record comes from a runner: the simulated IPMC in this process (``--in-process``: fast),
 the simulated plant in the lock-step ROS graph (``--sim``: ``ipmc bringup --sim --lockstep
@@ -97,7 +96,7 @@ class Recorded:
 
 @dataclass(frozen=True)
 class Verdicts:
-    """What the diagnosis of one record decided, as the loop uses it."""
+    """What the diagnosis of the records so far decided, as the loop uses it."""
 
     outcomes: dict[str, str]
     reasons: dict[str, str]
@@ -127,7 +126,8 @@ class Runner(Protocol):
     def record(self, plan: PlannedInput, out_dir: Path) -> Recorded: ...
 
 
-Diagnoser = Callable[[Recorded, Path], Verdicts]
+#: Diagnoses the records made so far (oldest first) into a report folder.
+Diagnoser = Callable[[list[Recorded], Path], Verdicts]
 Progress = Callable[[str], None]
 
 
@@ -188,7 +188,8 @@ class Investigation:
 
     @property
     def rmse_after_mm(self) -> float:
-        """The last model (every accepted effect) on the last record's held-out part."""
+        """The last model (every accepted effect) on the held-out part of the last diagnosis's
+        records."""
         return self.rounds[-1].verdicts.rmse_after_mm if self.rounds else float("nan")
 
 
@@ -247,15 +248,18 @@ def stop_reason(inv: Investigation, max_rounds: int) -> str | None:
 
 
 def play_round(number: int, plan: PlannedInput, undecided: tuple[str, ...], runner: Runner,
-               diagnoser: Diagnoser, out_dir: Path, say: Progress) -> InvestigationRound:
-    """Play ``plan``, record it and diagnose the record into ``out_dir``."""
+               diagnoser: Diagnoser, out_dir: Path, say: Progress,
+               earlier: list[Recorded] | None = None) -> InvestigationRound:
+    """Play ``plan``, record it and diagnose it with the ``earlier`` records into
+    ``out_dir``."""
     t0 = time.monotonic()
     why = f" to decide {', '.join(undecided)}" if undecided else ""
     say(f"round {number}: playing {plan.label}{why} on {runner.describe()} (into {out_dir})")
     rec = runner.record(plan, out_dir)
+    records = [*(earlier or []), rec]
     say(f"round {number}: recorded {rec.u_v.size} samples ({rec.duration_s:.0f} s) in "
         f"{rec.path}; diagnosing")
-    verdicts = diagnoser(rec, out_dir / "diagnosis")
+    verdicts = diagnoser(records, out_dir / "diagnosis")
     rnd = InvestigationRound(number, undecided, plan, rec, verdicts, time.monotonic() - t0)
     found = ", ".join(verdicts.effects_found) or "none"
     left = ", ".join(verdicts.undecided()) or "nothing"
@@ -279,7 +283,8 @@ def investigate(runner: Runner, first: PlannedInput, diagnoser: Diagnoser, out_d
         while True:
             n = len(inv.rounds) + 1
             inv.rounds.append(play_round(n, plan, undecided, runner, diagnoser,
-                                         out_dir / f"round_{n}", say))
+                                         out_dir / f"round_{n}", say,
+                                         [r.record for r in inv.rounds]))
             why = stop_reason(inv, max_rounds)
             if why is not None:
                 inv.stopped_because = why
@@ -314,17 +319,20 @@ def verdicts_of(d, report_dir: Path, paths: dict) -> Verdicts:
         model_before=Path(paths["model_before"]), model_after=Path(paths["model_after"]))
 
 
-def residual_diagnoser(candidates: list[str] | None = None,
-                       progress: Progress | None = None) -> Diagnoser:
-    """The diagnosis of ``ipmc diagnose`` (own core model; ``candidates``: default all), its
-    report written to the round's ``diagnosis/`` folder."""
-    from ipmc_model.diagnosis import diagnose
+def residual_diagnoser(candidates: list[str] | None = None, progress: Progress | None = None,
+                       together: bool = False) -> Diagnoser:
+    """The diagnosis of ``ipmc diagnose`` (own core model; ``candidates``: default all) of the
+    newest record, or with ``together`` of every record so far at once; its report written to
+    the round's ``diagnosis/`` folder."""
     from ipmc_model.diagnosis.report import write_report
+    from ipmc_model.diagnosis.search import diagnose_records
 
-    def run(rec: Recorded, report_dir: Path) -> Verdicts:
-        d = diagnose(rec.t_s, rec.u_v, rec.y_mm, candidates=candidates,
-                     progress=(lambda text: progress("  " + text)) if progress else None)
-        summary = write_report(d, report_dir, data_label=str(rec.path))
+    def run(records: list[Recorded], report_dir: Path) -> Verdicts:
+        records = records if together else records[-1:]
+        d = diagnose_records([(str(r.path), r.t_s, r.u_v, r.y_mm) for r in records],
+                             candidates=candidates,
+                             progress=(lambda text: progress("  " + text)) if progress else None)
+        summary = write_report(d, report_dir, data_label=", ".join(str(r.path) for r in records))
         return verdicts_of(d, report_dir, summary)
 
     return run

@@ -23,6 +23,7 @@ from ipmc_control.investigate import (
     first_input,
     investigate,
     main,
+    residual_diagnoser,
 )
 from ipmc_control.investigate_report import write_investigation
 from ipmc_model.diagnosis.experiment import Experiment, ExperimentPart
@@ -63,14 +64,15 @@ def stand_in_diagnoser(script: list[tuple[dict, Experiment | None]]):
     """Round k's diagnosis returns script[k] (outcomes, next experiment); the last repeats."""
     calls = []
 
-    def run(rec: Recorded, report_dir: Path) -> Verdicts:
+    def run(records: list[Recorded], report_dir: Path) -> Verdicts:
         outcomes, nxt = script[min(len(calls), len(script) - 1)]
-        calls.append(rec)
+        calls.append(records)
         found = tuple(n for n, o in outcomes.items() if o == "accepted")
         return Verdicts(outcomes, {n: f"{n} was {o}" for n, o in outcomes.items()},
                         {n: {"taus_s": [12.0]} for n in found}, found, 0.02,
                         0.01 if found else 0.02, 0.005, nxt, report_dir)
 
+    run.calls = calls
     return run
 
 
@@ -85,9 +87,12 @@ DECIDED = ({"creep": "accepted", "delay": "rejected"}, None)
 
 def test_rounds_play_the_proposed_experiment_until_nothing_is_undecided(tmp_path):
     runner = StandInRunner()
-    inv = investigate(runner, _first(tmp_path), stand_in_diagnoser([UNDECIDED, DECIDED]),
-                      tmp_path, budget_s=600.0)
+    diagnoser = stand_in_diagnoser([UNDECIDED, DECIDED])
+    inv = investigate(runner, _first(tmp_path), diagnoser, tmp_path, budget_s=600.0)
     assert [r.number for r in inv.rounds] == [1, 2]
+    # each round diagnoses every record made so far, oldest first
+    assert [len(c) for c in diagnoser.calls] == [1, 2]
+    assert diagnoser.calls[1][0] is inv.rounds[0].record
     first, second = inv.rounds
     assert first.undecided == () and first.decided == {"delay": "rejected"}
     assert second.undecided == ("creep",) and second.decided == {"creep": "accepted"}
@@ -226,3 +231,21 @@ def test_help_describes_the_loop(capsys):
     text = capsys.readouterr().out
     assert "--first-input" in text and "--budget-min" in text and "--in-process" in text
     assert not HISTORY.search(text)
+
+
+def test_the_diagnoser_takes_the_newest_record_or_every_record_together(tmp_path):
+    from ipmc_driver.plant import IpmcPlant
+    from ipmc_driver.signals import random_sine
+
+    records = []
+    for i in range(2):
+        u = random_sine(40.0, RATE_HZ, 2.5, band_hz=(0.05, 1.0), seed=i)[1]
+        run = IpmcPlant(seed=i, dt_s=1.0 / RATE_HZ).run(u)
+        records.append(Recorded(run.t_s, run.u_v, run.y_mm, tmp_path / f"r{i}.csv"))
+    for together, names in ((False, [str(records[1].path)]),
+                            (True, [str(r.path) for r in records])):
+        out = tmp_path / f"together_{together}"
+        verdicts = residual_diagnoser(["drift"], together=together)(records, out)
+        summary = json.loads((out / "summary.json").read_text())
+        assert [r["name"] for r in summary["records"]] == names
+        assert verdicts.rmse_before_mm == pytest.approx(summary["rmse_before_mm"])
