@@ -252,7 +252,7 @@ def test_the_next_experiment_makes_creep_delay_and_dead_zone_testable():
     rec2 = DiagnosisRecord(new.t_s, x.u_v, new.y_mm, cfg)
     model2 = core_model(rec2)
     assert [C[n].not_testable(rec2, model2, False) for n in names] == [None] * 3
-    held = [p for p in x.parts if p.start_s >= rec2.cut * rec2.dt_s - 1e-9]
+    held = [p for p in x.parts if p.start_s >= rec2.segments[0].cut * rec2.dt_s - 1e-9]
     assert {p.effect for p in held} == set(names)
 
 

@@ -66,9 +66,9 @@ def _checked(name: str, t_s, u_v, y_mm) -> tuple[np.ndarray, np.ndarray, np.ndar
 
 
 class DiagnosisRecord:
-    """Time (s), voltage (V) and tip (mm) of one record, split at ``cut``: the model and every
-    block are fitted on ``[:cut]`` and judged on the free run over ``[cut:]``.
-    :meth:`joined` makes one of several records."""
+    """Time (s), voltage (V) and tip (mm) of one record, split at its segment's ``cut``: the
+    model and every block are fitted on the rows before it and judged on the free run over
+    the rows from it on. :meth:`joined` makes one of several records."""
 
     def __init__(self, t_s, u_v, y_mm, config: DiagnosisConfig, name: str = "record"):
         self._build([(name, t_s, u_v, y_mm)], config)
@@ -102,9 +102,9 @@ class DiagnosisRecord:
                                 start + int(round(config.fit_share * ui.size))))
             start += ui.size
         self.u_v, self.y_mm = np.concatenate(u), np.concatenate(y)
-        self.t_s = checked[0][1][0] + np.arange(self.u_v.size) * self.dt_s
-        if len(checked) == 1:
-            self.t_s = checked[0][1]
+        # joined records: one clock from the first record's start, the rests included
+        self.t_s = (checked[0][1] if len(checked) == 1 else
+                    checked[0][1][0] + np.arange(self.u_v.size) * self.dt_s)
         if np.ptp(self.u_v) == 0.0:
             raise ValueError("the input is constant: nothing can be identified from it")
         self.config, self.segments = config, tuple(segs)
@@ -121,11 +121,6 @@ class DiagnosisRecord:
     def fit_end(self) -> int:
         """One past the last fit row: fits run over ``[:fit_end]``."""
         return int(np.flatnonzero(self.fit_rows)[-1]) + 1
-
-    @property
-    def cut(self) -> int:
-        """A single record's first held-out row."""
-        return self.segments[0].cut if len(self.segments) == 1 else self.fit_end
 
     @property
     def u_fit(self) -> np.ndarray:
