@@ -100,6 +100,8 @@ def test_creep_needs_holds_and_is_found_on_them():
     p = next(r for r in held.candidates if r.name == "creep").evidence.params
     lo, hi = p["tau_ci_s"]
     assert lo < 12.0 < hi and lo <= p["tau_s"] <= hi and hi - lo < 6.0
+    assert p["tau_ci_open"] == [False, False]   # both ends set by the data
+    assert held.next_experiment is None or "creep" not in held.next_experiment.decides
     assert p["gain_ci_mm_per_v"][0] < p["gain_mm_per_v"] < p["gain_ci_mm_per_v"][1] < 0
 
 
@@ -299,3 +301,28 @@ def test_cli_diagnoses_records_together_and_says_which_decided(tmp_path, capsys)
     report = (out / "report.md").read_text()
     assert "Which record decided creep" in report and "joined in this order" in report
     assert "effects found: creep" in capsys.readouterr().out
+
+
+def test_an_accepted_creep_whose_time_constant_is_left_open_gets_deciding_holds():
+    from ipmc_model.diagnosis import design_experiment
+    from ipmc_model.diagnosis.results import CandidateResult, Diagnosis, Evidence, LossTest, Round
+
+    data = plant_record({}, 120.0, 1, holds=True)
+    cfg = DiagnosisConfig()
+    rec = DiagnosisRecord(data.t_s, data.u_v, data.y_mm, cfg)
+    model = core_model(rec)
+
+    def proposal(open_ends):
+        params = {"tau_s": 28.0, "tau_ci_s": [9.0, 28.0], "tau_ci_open": open_ends,
+                  "gain_mm_per_v": 0.05, "gain_ci_mm_per_v": [0.01, 0.09]}
+        ev = Evidence(0.05, 0.03, LossTest(1e-3, 3.0, 0.001, 10, 1e-5), params)
+        res = CandidateResult("creep", Outcome.ACCEPTED, "accepted", 1, ev)
+        d = Diagnosis(rec.t_s, rec.u_v, rec.y_mm, rec.held_rows, rec.segments, cfg, False,
+                      model, model, rounds=[Round(1, 0.05, (res,), "creep")])
+        return design_experiment(d, rec)
+
+    assert proposal([False, False]) is None
+    x = proposal([False, True])
+    assert x.decides == ["creep"]
+    probe = next(p for p in x.parts if p.effect == "creep")
+    assert "not pinned down" in probe.reason and probe.duration_s >= 2 * 3 * 28.0 - 1e-6

@@ -70,6 +70,12 @@ class Candidate:
         given model is what it needs)."""
         return None
 
+    def poorly_determined(self, result) -> str | None:
+        """Why an accepted effect's parameters are not pinned down by the record (a 95 %
+        interval the record leaves open), so that the probe is worth recording; None if
+        they are."""
+        return None
+
     def refit(self, model: GeneralizedPI, rec: DiagnosisRecord) -> Fitted | str:
         """The own model with this block, refitted on the fit rows (or why none fits)."""
         return "fitted only around a given model"
@@ -275,6 +281,16 @@ class Creep(Candidate):
                      f"{tau:g} s) at +-{a:.2f} V: a relaxation settles while the input holds "
                      f"still, the path memory does not move")
 
+    def poorly_determined(self, result):
+        p = result.evidence.params if result.evidence is not None else {}
+        low, high = p.get("tau_ci_open", (False, False))
+        if not (low or high):
+            return None
+        lo, hi = p["tau_ci_s"]
+        side = "longest" if high else "shortest"
+        return (f"the creep's time constant is not pinned down: its 95 % interval "
+                f"[{lo:.3g}, {hi:.3g}] s runs to the {side} one the record can show")
+
     def refit(self, model, rec):
         taus = creep_taus(model, rec)
         if not taus:
@@ -331,24 +347,27 @@ def creep_profile(before: GeneralizedPI, rec: DiagnosisRecord, n_taus: int = 9) 
         curv = (a - 2 * b + c) / step ** 2
         centre = x[k] + 0.5 * step * (a - c) / (a - 2 * b + c)
         half = math.sqrt(chi2.ppf(0.95, 1) / (0.5 * curv))
-        return _tau_and_gain(x, fits, halves, centre, (centre - half, centre + half))
-    ends = []
+        return _tau_and_gain(x, fits, halves, centre, (centre - half, centre + half),
+                             (False, False))
+    ends, open_ends = [], []
     for side in (range(k, -1, -1), range(k, n_taus)):   # an end at the grid's edge: open
         idx = list(side)
-        end = float(x[idx[-1]])
+        end, crossed = float(x[idx[-1]]), False
         for i, j in zip(idx, idx[1:], strict=False):
             if excess[j] > 0:   # crossed between the two: interpolate in log tau
                 end = float(x[i] + (x[j] - x[i]) * -excess[i] / (excess[j] - excess[i]))
+                crossed = True
                 break
         ends.append(end)
-    return _tau_and_gain(x, fits, halves, float(x[k]), tuple(ends))
+        open_ends.append(not crossed)
+    return _tau_and_gain(x, fits, halves, float(x[k]), tuple(ends), tuple(open_ends))
 
 
 def _tau_and_gain(log_grid: np.ndarray, fits: list, halves: np.ndarray, centre: float,
-                  ends: tuple) -> dict:
-    """tau (s) at ``centre`` with the interval ``ends`` (log s), and the refits' creep gain
-    (mm/V) there with its interval: each gain's Wald interval (``halves``), joined over tau's
-    interval."""
+                  ends: tuple, open_ends: tuple) -> dict:
+    """tau (s) at ``centre`` with the interval ``ends`` (log s; ``open_ends``: which end the
+    grid cut, not the data), and the refits' creep gain (mm/V) there with its interval: each
+    gain's Wald interval (``halves``), joined over tau's interval."""
     gains = np.array([m.output_coef_[-1] for m in fits])
     at = np.linspace(ends[0], ends[1], 25)
     g, h = np.interp(at, log_grid, gains), np.interp(at, log_grid, halves)
@@ -356,7 +375,7 @@ def _tau_and_gain(log_grid: np.ndarray, fits: list, halves: np.ndarray, centre: 
             "tau_ci_s": [float(np.exp(ends[0])), float(np.exp(ends[1]))],
             "gain_mm_per_v": float(np.interp(centre, log_grid, gains)),
             "gain_ci_mm_per_v": [float((g - h).min()), float((g + h).max())],
-            "interval": "profile of refits"}
+            "tau_ci_open": [bool(e) for e in open_ends], "interval": "profile of refits"}
 
 
 def _creep_params(m: GeneralizedPI, taus, rec: DiagnosisRecord) -> dict:
@@ -412,11 +431,13 @@ def creep_estimate(base: GeneralizedPI, rec: DiagnosisRecord) -> dict:
     def excess(t: float) -> float:
         return math.log(fit(t)[0] / sse) - limit
 
-    ends = [brentq(excess, a, b, xtol=1e-3 * tau) if excess(a) * excess(b) < 0 else a
-            for a, b in ((lo, tau), (hi, tau))]
+    closed = [excess(a) * excess(b) < 0 for a, b in ((lo, tau), (hi, tau))]
+    ends = [brentq(excess, a, b, xtol=1e-3 * tau) if c else a
+            for (a, b), c in zip(((lo, tau), (hi, tau)), closed, strict=True)]
     half = 1.96 * math.sqrt(sse / n_eff / float(x @ x))
     return {"tau_s": tau, "tau_ci_s": [float(ends[0]), float(ends[1])],
-            "gain_mm_per_v": g, "gain_ci_mm_per_v": [g - half, g + half]}
+            "gain_mm_per_v": g, "gain_ci_mm_per_v": [g - half, g + half],
+            "tau_ci_open": [not c for c in closed]}
 
 
 def fit_drift(model: GeneralizedPI, rec: DiagnosisRecord) -> GeneralizedPI:

@@ -1,11 +1,13 @@
 """The next experiment: an excitation designed to decide what a record could not.
 
 When the record cannot test a candidate (creep without input holds, a delay without steps, a
-dead zone without slow crossings of 0 V), the candidate's class proposes a probe: the short
-input that shows its effect. The experiment plays the probes after an identification input
-that covers the record's range, and then plays them again as the held-out part, so that the
-diagnosis of the new record judges each effect on exactly the excitation that shows it, and
-the fit part has seen that excitation too (the judged rows stay within its range).
+dead zone without slow crossings of 0 V), or an accepted effect's parameters are left open
+by it (a creep whose time constant's interval runs to the longest the record can show), the
+candidate's class proposes a probe: the short input that shows its effect. The experiment
+plays the probes after an identification input that covers the record's range, and then
+plays them again as the held-out part, so that the diagnosis of the new record judges each
+effect on exactly the excitation that shows it, and the fit part has seen that excitation
+too (the judged rows stay within its range).
 
 Layout, with the diagnosis's split (``fit_share``): ``[base, first half] [probes] [base,
 second half] | [probes]``: the probes are ``1 - fit_share`` of the whole, so the last copy is
@@ -14,7 +16,7 @@ the held-out part.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -83,17 +85,21 @@ def probe_level_v(rec: DiagnosisRecord) -> float:
 
 
 def design_experiment(d: Diagnosis, rec: DiagnosisRecord) -> Experiment | None:
-    """The experiment that decides the diagnosis's not-testable candidates; None if none of
-    them has a probe (the ones that need a given model instead of a record)."""
+    """The experiment that decides the diagnosis's not-testable candidates and pins down the
+    accepted ones whose parameters the record left open; None if none of them has a probe
+    (the ones that need a given model instead of a record)."""
     from .candidates import CANDIDATES
 
     probes = []
     for res in d.candidates:
         cand = CANDIDATES.get(res.name)
-        if res.outcome is Outcome.NOT_TESTABLE and cand is not None:
-            probe = cand.probe(rec, d.model_before, res)
-            if probe is not None:
-                probes.append(probe)
+        why = (cand.poorly_determined(res) if cand is not None and res.accepted else None)
+        if cand is None or not (res.outcome is Outcome.NOT_TESTABLE or why):
+            continue
+        probe = cand.probe(rec, d.model_before, res)
+        if probe is not None:
+            probes.append(probe if why is None else replace(probe, reason=f"{why}; "
+                                                                          f"{probe.reason}"))
     if not probes:
         return None
     return assemble(probes, rec, seed=0)
