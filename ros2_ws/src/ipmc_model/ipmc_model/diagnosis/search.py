@@ -65,21 +65,21 @@ def held_error(model: GeneralizedPI, rec: DiagnosisRecord) -> np.ndarray:
     return rec.judged_error(model.simulate(rec.u_v))
 
 
-def per_record(current: GeneralizedPI, candidate: GeneralizedPI, rec: DiagnosisRecord
+def per_record(e_cur: np.ndarray, e_new: np.ndarray, rec: DiagnosisRecord
                ) -> tuple[RecordShare, ...]:
-    """Each joined record's judged held-out RMSE with ``current`` and with ``candidate``
-    (none for a single record: the round's figures are its own)."""
+    """Each joined record's share of the judged held-out errors ``e_cur`` (current model)
+    and ``e_new`` (with the candidate); none for a single record (the round's figures are
+    its own)."""
     if len(rec.segments) == 1:
         return ()
-    y_cur, y_new = current.simulate(rec.u_v), candidate.simulate(rec.u_v)
+    at = np.flatnonzero(rec.judged)
     out = []
     for s in rec.segments:
-        rows = np.zeros(rec.u_v.size, dtype=bool)
-        rows[s.start:s.stop] = True
-        rows &= rec.judged
-        e_cur, e_new = (y_cur - rec.y_mm)[rows], (y_new - rec.y_mm)[rows]
-        out.append(RecordShare(s.name, _rms(e_cur), _rms(e_new),
-                               float(np.mean(e_cur ** 2 - e_new ** 2))))
+        k = (at >= s.start) & (at < s.stop)
+        a, b = e_cur[k], e_new[k]
+        gain = float(np.mean(a ** 2 - b ** 2)) if k.any() else float("nan")
+        out.append(RecordShare(s.name, _rms(a) if k.any() else float("nan"),
+                               _rms(b) if k.any() else float("nan"), gain))
     return tuple(out)
 
 
@@ -136,7 +136,7 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
         screen = fit_screen(sse_fit, n_eff, CANDIDATES[name], out.model, rec, cfg.family_alpha)
         tested[name] = (out, Evidence(_rms(e_cur), _rms(e_new), test, out.params, out.scan,
                                       screen=screen,
-                                      records=per_record(current, out.model, rec)))
+                                      records=per_record(e_cur, e_new, rec)))
     # the family is the candidates the round may accept and the fit rows support; rivals
     # (not testable) are tested beside it
     screened = {n: ev for n, (_, ev) in tested.items() if ev.screen.passed}
