@@ -100,10 +100,8 @@ def clean_twin(inv: Investigation, rate_hz: float, seed: int, together: bool
     it found there."""
     from ipmc_driver.plant import IpmcPlant
 
-    records = []
-    for i, rnd in enumerate(inv.rounds):
-        if not together and i < len(inv.rounds) - 1:
-            continue
+    records, first = [], 0 if together else len(inv.rounds) - 1
+    for i, rnd in enumerate(inv.rounds[first:], start=first):
         run = IpmcPlant(effects=(), seed=seed + i, dt_s=1.0 / rate_hz).run(rnd.played.u_v)
         records.append((f"round {i + 1}", run.t_s, run.u_v, run.y_mm))
     d = diagnose_records(records)

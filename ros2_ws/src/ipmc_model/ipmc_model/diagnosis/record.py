@@ -107,43 +107,33 @@ class DiagnosisRecord:
                     checked[0][1][0] + np.arange(self.u_v.size) * self.dt_s)
         if np.ptp(self.u_v) == 0.0:
             raise ValueError("the input is constant: nothing can be identified from it")
-        self.config, self.segments = config, tuple(segs)
-        self.fit_rows = np.zeros(self.u_v.size, dtype=bool)
-        self.held_rows = np.zeros(self.u_v.size, dtype=bool)
-        for s in segs:
-            self.fit_rows[s.start:s.cut] = True
-            self.held_rows[s.cut:s.stop] = True
+        self.config = config
+        self._split(tuple(segs))
         self.judged = self._judged()
         self.excitation = self._excitation()
 
     # -- rows ----------------------------------------------------------------------------
-    @property
-    def fit_end(self) -> int:
-        """One past the last fit row: fits run over ``[:fit_end]``."""
-        return int(np.flatnonzero(self.fit_rows)[-1]) + 1
-
-    @property
-    def u_fit(self) -> np.ndarray:
-        """The input the fits run over (every row up to the last fit row)."""
-        return self.u_v[:self.fit_end]
-
-    @property
-    def y_fit(self) -> np.ndarray:
-        """The output the fits see: NaN (not measured) on the rows that are not fit rows."""
-        return np.where(self.fit_rows, self.y_mm, np.nan)[:self.fit_end]
-
-    @property
-    def fit_obs(self) -> np.ndarray:
-        """Which rows of ``u_fit`` are fit rows."""
-        return self.fit_rows[:self.fit_end]
+    def _split(self, segments: tuple[Segment, ...]) -> None:
+        """The rows of ``segments``' split, set once: ``fit_rows`` and ``held_rows`` (masks
+        over every row); ``u_fit`` and ``y_fit``, what the fits run over (every row up to
+        the last fit row; y NaN, not measured, where a row is not a fit row); ``fit_obs``,
+        which rows of ``u_fit`` are fit rows."""
+        self.segments = segments
+        self.fit_rows = np.zeros(self.u_v.size, dtype=bool)
+        self.held_rows = np.zeros(self.u_v.size, dtype=bool)
+        for s in segments:
+            self.fit_rows[s.start:s.cut] = True
+            self.held_rows[s.cut:s.stop] = True
+        self.fit_end = int(np.flatnonzero(self.fit_rows)[-1]) + 1
+        self.u_fit = self.u_v[:self.fit_end]
+        self.y_fit = np.where(self.fit_rows, self.y_mm, np.nan)[:self.fit_end]
+        self.fit_obs = self.fit_rows[:self.fit_end]
 
     def whole(self) -> DiagnosisRecord:
         """These records with every measured row a fit row: where a parameter is estimated
         once the held-out rows have decided."""
         out = copy.copy(self)
-        out.fit_rows = self.fit_rows | self.held_rows
-        out.held_rows = np.zeros_like(self.held_rows)
-        out.segments = tuple(replace(s, cut=s.stop) for s in self.segments)
+        out._split(tuple(replace(s, cut=s.stop) for s in self.segments))
         out.excitation = replace(self.excitation, fit_span_s=self.excitation.span_s)
         return out
 
