@@ -25,7 +25,11 @@ The voltage u (V) passes through four stages, each an actuator mechanism:
    of the generalised PI (Al Janaideh, Rakheja & Su).
 
 An optional channel beside the plays: the charging current ``dv/dt`` (``rate_channel``:
-bending that follows the migrating ions, not their charge). After the map an output stage
+bending that follows the migrating ions, not their charge). After the map, optional output
+channels are added to the tip linearly: the charging current (``output_rate``: water dragged
+with the migrating cations bends the strip on top of the charge's bending, so it adds after
+the bending's nonlinearity, not inside it) and slow relaxations of the charge
+(``output_taus_s``: creep). Then an output stage
 scales the negative side (``negative_gain_``: an electrode face that cracked), lets gain and
 offset change linearly with the time since the start (``drift_gain_per_s_``,
 ``drift_offset_mm_per_s_``: an IPMC dehydrating) and softly limits the tip (``limit_mm_``: a
@@ -326,6 +330,9 @@ class GeneralizedPI:
         reverse, so their direction memory is a long-lived state a record pins down poorly.
     output_taus_s : sequence of float
         Relaxations of the charge added after the map (creep); () by default.
+    output_rate : bool
+        The charging current ``dv/dt`` added after the map with a fitted gain
+        (``output_coef_[0]``, mm per V/s): rate-dependent bending.
     warm_start : bool
         A fitted model's ``fit`` keeps its learned structure (relaxations kept, thresholds,
         delay, feature scaling, map knots) and fits the continuous parameters on from where
@@ -362,7 +369,7 @@ class GeneralizedPI:
                  path_memory_v=DEFAULT_PATH_MEMORY_V, output_taus_s=(),
                  direction_memory_v=DEFAULT_DIRECTION_MEMORY_V, direction_channels: int = 3,
                  start_tau_factors=INITIAL_TAU_FACTORS, warm_start: bool = False,
-                 progress=None):
+                 output_rate: bool = False, progress=None):
         self.memory_taus_s = tuple(float(t) for t in memory_taus_s)
         self.play_channels = play_channels
         self.threshold_shares = tuple(float(s) for s in threshold_shares)
@@ -384,6 +391,7 @@ class GeneralizedPI:
         self.direction_channels = int(direction_channels)
         self.start_tau_factors = tuple(float(f) for f in start_tau_factors)
         self.warm_start = bool(warm_start)
+        self.output_rate = bool(output_rate)
         self.progress = progress
         self.weights_ = None
         self.neutral_output_stage()
@@ -392,12 +400,23 @@ class GeneralizedPI:
         """Output stage off: negative-side gain 1, no drift, no limit."""
         self.negative_gain_, self.limit_mm_ = 1.0, math.inf
         self.drift_gain_per_s_, self.drift_offset_mm_per_s_ = 0.0, 0.0
-        self.output_coef_ = np.zeros(len(self.output_taus_s))
+        self.output_coef_ = np.zeros(self.n_output_channels)
 
-    def _output_relax(self, u: np.ndarray, theta) -> np.ndarray:
-        """The charge's relaxations added to the bending after the map, (N, len(output_taus_s)):
-        a slow relaxation of the tip itself (creep), linear in the charge."""
-        return lowpass_bank(self._charge(u, theta), self.output_taus_s, self.dt_s)[0]
+    @property
+    def n_output_channels(self) -> int:
+        """Channels added after the map: the charging current (first, with ``output_rate``),
+        then one per output relaxation."""
+        return int(self.output_rate) + len(self.output_taus_s)
+
+    def _output_channels(self, u: np.ndarray, theta) -> np.ndarray:
+        """The channels added to the bending after the map, (N, n_output_channels): the
+        charging current (rate-dependent bending) and the charge's slow relaxations (creep),
+        each linear in the charge."""
+        v = self._charge(u, theta)
+        relax = lowpass_bank(v, self.output_taus_s, self.dt_s)[0]
+        if not self.output_rate:
+            return relax
+        return np.column_stack([np.diff(v, prepend=0.0) / self.dt_s, relax])
 
     # -- features ----------------------------------------------------------------------------
     def _charge(self, u: np.ndarray, theta) -> np.ndarray:
@@ -565,7 +584,7 @@ class GeneralizedPI:
         _, theta0, self.feature_mean_, self.feature_scale_, w0, self.knots_ = \
             self._best_start(u, y, theta0, bounds)
         coef0 = np.zeros(int(self.n_knots) + 1 + (2 if self.drift else 0)
-                         + len(self.output_taus_s))
+                         + self.n_output_channels)
         coef0[0] = 1.0
         x = self._joint_fit(u, y, np.concatenate([theta0, w0, coef0]), bounds,
                             self.alphas[0], max_nfev)
@@ -604,8 +623,22 @@ class GeneralizedPI:
         if self.progress is not None:
             self.progress(text)
 
+    def _first_tau_guess(self, span_s: float) -> float:
+        """The charging time constant (s) the start grid's factors multiply."""
+        return min(INITIAL_TAU_SAMPLES * self.dt_s, span_s / 10)
+
+    def refit_params(self, span_s: float, **changes) -> dict:
+        """Hyperparameters for a refit on a record of ``span_s`` seconds with ``changes``,
+        its joint fit started from this fitted model's charging time constant alone: refits
+        that differ by one block then differ by that block, not by which start of the grid
+        a non-convex fit settled from."""
+        check_fitted(self, "weights_")
+        start = (self.charge_tau_s_ / self._first_tau_guess(span_s),) if self.rate_limit \
+            else self.start_tau_factors
+        return {**self.get_params(), "start_tau_factors": start, **changes}
+
     def _initial_theta(self, u: np.ndarray, span_s: float):
-        tau0 = min(INITIAL_TAU_SAMPLES * self.dt_s, span_s / 10)
+        tau0 = self._first_tau_guess(span_s)
         u_max = float(np.max(np.abs(u)))
         slew0 = u_max / tau0
         lo = [math.log(self.dt_s), math.log(0.01 * slew0)]
@@ -624,7 +657,7 @@ class GeneralizedPI:
         if self.drift:
             self.drift_gain_per_s_, self.drift_offset_mm_per_s_ = (float(v) for v in
                                                                    x[2 + p + k:4 + p + k])
-        self.output_coef_ = np.array(x[x.size - len(self.output_taus_s):])
+        self.output_coef_ = np.array(x[x.size - self.n_output_channels:])
 
     def _joint_fit(self, u, y, x0, bounds, alpha: float, max_nfev: int | None = None
                    ) -> np.ndarray:
@@ -637,14 +670,14 @@ class GeneralizedPI:
         t = rows * self.dt_s
         ridge = math.sqrt(alpha * rows.size)
         n_theta = 2 if self.rate_limit else 0
-        n_out = len(self.output_taus_s)
+        n_out = self.n_output_channels
         cache: dict = {}
 
         def design(theta):
             key = tuple(np.round(theta, 12))
             if key not in cache:
                 cache.clear()
-                cache[key] = (self._design(u, theta)[rows], self._output_relax(u, theta)[rows])
+                cache[key] = (self._design(u, theta)[rows], self._output_channels(u, theta)[rows])
             return cache[key]
 
         def split(x):
@@ -669,7 +702,7 @@ class GeneralizedPI:
             for i in range(n_theta):  # finite differences through the charging recursion
                 t2 = th.copy()
                 t2[i] += 1e-4
-                A2, X2 = self._design(u, t2)[rows], self._output_relax(u, t2)[rows]
+                A2, X2 = self._design(u, t2)[rows], self._output_channels(u, t2)[rows]
                 cols.append((output(A2, X2, w, c, g, o, e) - now) / 1e-4)
             cols += [np.zeros(rows.size)] * (2 - n_theta)
             drift = [np.column_stack([base * t, t])] if self.drift else []
@@ -696,9 +729,9 @@ class GeneralizedPI:
         p, k = self.feature_mean_.size + 1, self.knots_.size + 1
         A = self._design(u, x[:2])
         w, c = x[2:2 + p], x[2 + p:2 + p + k]
-        n_out = len(self.output_taus_s)
+        n_out = self.n_output_channels
         if n_out:  # judged on the record with the fitted output stage undone
-            y = y - self._output_relax(u, x[:2]) @ x[x.size - n_out:]
+            y = y - self._output_channels(u, x[:2]) @ x[x.size - n_out:]
         if self.drift:
             g, o = x[2 + p + k:4 + p + k]
             t = np.arange(u.size) * self.dt_s
@@ -735,8 +768,8 @@ class GeneralizedPI:
         check_fitted(self, "weights_")
         u = as_signal("u", u)
         z = self._design(u, self._theta) @ self.weights_
-        added = self._output_relax(u, self._theta) @ self.output_coef_ if self.output_taus_s \
-            else 0.0
+        added = self._output_channels(u, self._theta) @ self.output_coef_ \
+            if self.n_output_channels else 0.0
         return self.output_stage(hinge_basis(z, self.knots_) @ self.map_coef_,
                                  np.arange(z.size) * self.dt_s, added)
 
@@ -782,7 +815,7 @@ class GeneralizedPI:
                 "direction_memory_v": list(self.direction_memory_v),
                 "direction_channels": self.direction_channels,
                 "start_tau_factors": list(self.start_tau_factors),
-                "warm_start": self.warm_start}
+                "warm_start": self.warm_start, "output_rate": self.output_rate}
 
 
 class GpiStepper:
@@ -851,8 +884,12 @@ class GpiStepper:
         phi = np.column_stack([n.v, n.relax, n.plays.reshape(g, -1), n.travel,
                                n.direction.reshape(g, -1), extra])
         z = ((phi - m.feature_mean_) / m.feature_scale_) @ m.weights_[:-1] + m.weights_[-1]
+        r = int(m.output_rate)
+        added = n.out_relax @ m.output_coef_[r:]
+        if r:
+            added = added + m.output_coef_[0] * (n.v - self.state.v) / m.dt_s
         return m.output_stage(hinge_basis(z, m.knots_) @ m.map_coef_, self.state.k * m.dt_s,
-                              n.out_relax @ m.output_coef_)
+                              added)
 
     def outputs(self, x_candidates) -> np.ndarray:
         """Model outputs (mm) for candidate charge inputs (V) of this sample; state unchanged."""

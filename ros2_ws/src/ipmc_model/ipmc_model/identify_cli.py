@@ -441,7 +441,8 @@ def gpi_stages(m: GeneralizedPI) -> str:
              f"dead zone {m.dead_zone_v:.3g} V" if m.dead_zone_v else "",
              f"creep taus {', '.join(f'{t:g}' for t in m.output_taus_s)} s"
              if m.output_taus_s else "",
-             "drift" if m.drift else "", "charging-current channel" if m.rate_channel else ""]
+             "drift" if m.drift else "", "charging-current channel" if m.rate_channel else "",
+             "charging-current bending" if m.output_rate else ""]
     return ", ".join(p for p in parts if p) or "no optional stage"
 
 

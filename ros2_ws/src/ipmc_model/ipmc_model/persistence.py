@@ -229,8 +229,9 @@ def _build_gpi(body: dict, arrays: dict):
     m.delay_samples_ = int(body["delay_samples_"])
     m.negative_gain_ = float(body.get("negative_gain_", 1.0))
     m.output_coef_ = np.asarray(body.get("output_coef_", []), dtype=float)
-    if m.output_coef_.size != len(m.output_taus_s):
-        raise ValueError("the output relaxations' coefficients do not match their time constants")
+    if m.output_coef_.size != m.n_output_channels:
+        raise ValueError("the output channels' coefficients do not match the channels (charging "
+                         "current, relaxations) the file's parameters define")
     m.drift_gain_per_s_ = float(body.get("drift_gain_per_s_", 0.0))
     m.drift_offset_mm_per_s_ = float(body.get("drift_offset_mm_per_s_", 0.0))
     limit = body.get("limit_mm_")
