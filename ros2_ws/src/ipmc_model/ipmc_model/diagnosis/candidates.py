@@ -30,8 +30,6 @@ from ..hysteresis import (
     GeneralizedPI,
     dead_zone,
     estimate_delay,
-    hinge_basis,
-    hinge_slope,
     lowpass_bank,
 )
 from .experiment import Probe, crossings, holds, probe_level_v
@@ -107,8 +105,8 @@ def register(cls: type[Candidate]) -> type[Candidate]:
 # -- shared fitting helpers -----------------------------------------------------------------
 def refit_with(model: GeneralizedPI, rec: DiagnosisRecord, **changes) -> GeneralizedPI:
     """``model``'s hyperparameters with ``changes``, fitted on the fit rows as the model was
-    (its ridge weight chosen again by the blocked free-run CV)."""
-    m = GeneralizedPI(**{**model.get_params(), **changes})
+    (its ridge weight chosen again by the blocked free-run CV), from its charging stage."""
+    m = GeneralizedPI(**model.refit_params(rec.u_fit.size * rec.dt_s, **changes))
     return m.fit(rec.u_fit, rec.y_fit)
 
 
@@ -119,7 +117,8 @@ SCAN_NFEV = 10
 
 def scan_error(model: GeneralizedPI, rec: DiagnosisRecord, **changes) -> float:
     """Fit-part RMSE of a quick refit of ``model`` with ``changes`` (ridge weight kept)."""
-    params = {**model.get_params(), **changes, "alphas": (model.cv_.alpha,),
+    params = {**model.refit_params(rec.u_fit.size * rec.dt_s), **changes,
+              "alphas": (model.cv_.alpha,),
               "max_nfev": SCAN_NFEV}
     return GeneralizedPI(**params).fit(rec.u_fit, rec.y_fit).train_rmse_
 
@@ -145,48 +144,6 @@ def descend_delay(model: GeneralizedPI, rec: DiagnosisRecord, start: int, lo: in
         d = min(better, key=err)
     tried = ", ".join(f"{k}: {cache[k]:.4f}" for k in sorted(cache))
     return d, f"linear scan {start} samples; quick refits (samples: fit RMSE mm) {tried}"
-
-
-def feature_names(m: GeneralizedPI) -> list[str]:
-    """Names of the model's raw feature columns, in order."""
-    return (["v"] + [f"relax {t:g} s" for t in m.memory_taus_s_]
-            + [f"play {i}" for i in range(m.thresholds_.size)]
-            + [f"travel {t:g} V" for t in m.path_memory_v]
-            + [f"direction {c} {t:g} V" for c in range(m.n_direction_channels)
-               for t in m.direction_memory_v]
-            + (["dv/dt"] if m.rate_channel else []))
-
-
-def with_new_columns(model: GeneralizedPI, rec: DiagnosisRecord, change, iterations: int = 3
-                     ) -> GeneralizedPI:
-    """A copy of ``model`` with ``change(copy)`` adding feature columns; only their weights
-    are fitted (Gauss-Newton through the frozen output map, on the fit rows)."""
-    m = copy.deepcopy(model)
-    change(m)
-    old = dict(zip(feature_names(model), range(model.feature_mean_.size), strict=True))
-    names = feature_names(m)
-    u, y, obs = rec.u_fit, rec.y_fit, rec.fit_obs
-    F = m._raw_features(u, m._theta)
-    mean, std = F[obs].mean(axis=0), F[obs].std(axis=0)
-    scale = np.where(std > 0, std, 1.0)
-    w = np.zeros(len(names) + 1)
-    w[-1] = model.weights_[-1]
-    for j, n in enumerate(names):
-        if n in old:
-            i = old[n]
-            mean[j], scale[j], w[j] = model.feature_mean_[i], model.feature_scale_[i], \
-                model.weights_[i]
-    new = np.array([n not in old for n in names] + [False])
-    m.feature_mean_, m.feature_scale_ = mean, scale
-    A = np.column_stack([(F - mean) / scale, np.ones(u.size)])
-    for _ in range(iterations):
-        z = A @ w
-        r = y - m.output_stage(hinge_basis(z, m.knots_) @ m.map_coef_,
-                               np.arange(u.size) * rec.dt_s)
-        J = A[:, new] * hinge_slope(z, m.knots_, m.map_coef_)[:, None]
-        w[new] += np.linalg.lstsq(J[obs], r[obs], rcond=None)[0]
-    m.weights_ = w
-    return m
 
 
 def fit_sse(model: GeneralizedPI, rec: DiagnosisRecord) -> float:
@@ -327,7 +284,8 @@ def creep_profile(before: GeneralizedPI, rec: DiagnosisRecord, n_taus: int = 9) 
     take up of a relaxation (an end at the grid's edge: open there)."""
     lo, hi = rec.config.creep_min_tau_s / 3.0, rec.excitation.fit_span_s / MIN_SPANS_PER_TAU
     grid = np.geomspace(lo, hi, n_taus)
-    params = {**before.get_params(), "alphas": (before.cv_.alpha,), "max_nfev": SCAN_NFEV}
+    params = before.refit_params(rec.u_fit.size * rec.dt_s, alphas=(before.cv_.alpha,),
+                                 max_nfev=SCAN_NFEV)
     u, y, obs = rec.u_fit, rec.y_fit, rec.fit_obs
     fits = [GeneralizedPI(**{**params, "output_taus_s": (*before.output_taus_s, float(t))}
                           ).fit(u, y) for t in grid]
@@ -570,26 +528,48 @@ class DeadZone(Candidate):
 class RateDependence(Candidate):
     name = "rate_dependence"
     meaning = ("bending that follows the charging current, not the charge (water dragged "
-               "with the migrating cations): loops widen with frequency")
+               "with the migrating cations): loops widen with frequency, a step overshoots")
 
     def not_testable(self, rec, model, given):
-        if not given:
-            return ("without a given model the core's fastest relaxation (0.05 s) beside the "
-                    "charge already spans the charging current (v - x_0.05 ~ 0.05 dv/dt), so "
-                    "a channel for it cannot be told apart; give another day's model "
-                    "(--model) to see a rate dependence appear")
+        # the block adds k dv/dt to the tip after the bending map; the core's fast relaxations
+        # can only put a current inside the map, where the bending's curvature distorts it
+        lag_s = rec.config.min_lag_samples * rec.dt_s
+        if not model.rate_limit or model.charge_tau_s_ < lag_s:
+            tau = model.charge_tau_s_ if model.rate_limit else 0.0
+            return (f"the model resolves no charging lag (time constant {tau:.3g} s, under "
+                    f"{lag_s:.3g} s): without one the charging current is the input's own "
+                    f"differences and a term on it a lead filter; record at a higher rate if "
+                    f"the actuator charges faster than that")
         return fast_input_reason(rec, model, "rate-dependent bending")
 
     def refit(self, model, rec):
-        return "fitted only around a given model"
+        if model.output_rate:
+            return "the model already has a charging-current term"
+        m = refit_with(model, rec, output_rate=True)
+        return Fitted(m, {"gain_mm_per_v_per_s": float(m.output_coef_[0])})
 
     def around(self, model, rec):
-        if model.rate_channel:
-            return "the model already has a charging-current channel"
+        if model.output_rate:
+            return "the model already has a charging-current term"
+        est = rate_estimate(model, rec)
+        m = copy.deepcopy(model)
+        m.output_rate = True
+        m.output_coef_ = np.concatenate([[est["gain_mm_per_v_per_s"]], m.output_coef_])
+        return Fitted(m, est)
 
-        def add(m):
-            m.rate_channel = True
-        return Fitted(with_new_columns(model, rec, add), {"channel": "dv/dt"})
+
+def rate_estimate(base: GeneralizedPI, rec: DiagnosisRecord) -> dict:
+    """The gain k (mm per V/s) of the charging current ``k dv/dt`` fitted, over the fit rows,
+    to what ``base`` leaves, with its Wald 95 % interval at the residual's effective sample
+    size."""
+    u, obs = rec.u_fit, rec.fit_obs
+    r = (rec.y_fit - base.simulate(u))[obs]
+    v = base._charge(u, base._theta)
+    x = (np.diff(v, prepend=0.0) / rec.dt_s)[obs]
+    g = float(x @ r / (x @ x))
+    e = r - g * x
+    half = 1.96 * math.sqrt(float(e @ e) / effective_samples(e) / float(x @ x))
+    return {"gain_mm_per_v_per_s": g, "gain_ci_mm_per_v_per_s": [g - half, g + half]}
 
 
 OWN_MAP_REASON = ("without a given model the output map is fitted to this record and carries "
