@@ -23,9 +23,8 @@ from .record import DiagnosisRecord
 from .results import CandidateResult, Diagnosis, Evidence, FitScreen, Outcome, RecordShare, Round
 
 #: Trust-region iterations of the core model's fits and of its candidates' refits: without
-#: direction memory the core converges within them from the best of the GPI's start grid.
-#: The grid stays: the charging stage's two parameters make the fit non-convex, and from a
-#: single start a clean 240 s record's fit can stop at twice the free-run error of the best.
+#: direction memory the core converges within them from a good start (it is fitted from each
+#: start of the grid, :func:`fit_from_each_start`).
 CORE_NFEV = 25
 
 
