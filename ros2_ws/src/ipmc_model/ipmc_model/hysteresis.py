@@ -623,22 +623,8 @@ class GeneralizedPI:
         if self.progress is not None:
             self.progress(text)
 
-    def _first_tau_guess(self, span_s: float) -> float:
-        """The charging time constant (s) the start grid's factors multiply."""
-        return min(INITIAL_TAU_SAMPLES * self.dt_s, span_s / 10)
-
-    def refit_params(self, span_s: float, **changes) -> dict:
-        """Hyperparameters for a refit on a record of ``span_s`` seconds with ``changes``,
-        its joint fit started from this fitted model's charging time constant alone: refits
-        that differ by one block then differ by that block, not by which start of the grid
-        a non-convex fit settled from."""
-        check_fitted(self, "weights_")
-        start = (self.charge_tau_s_ / self._first_tau_guess(span_s),) if self.rate_limit \
-            else self.start_tau_factors
-        return {**self.get_params(), "start_tau_factors": start, **changes}
-
     def _initial_theta(self, u: np.ndarray, span_s: float):
-        tau0 = self._first_tau_guess(span_s)
+        tau0 = min(INITIAL_TAU_SAMPLES * self.dt_s, span_s / 10)
         u_max = float(np.max(np.abs(u)))
         slew0 = u_max / tau0
         lo = [math.log(self.dt_s), math.log(0.01 * slew0)]

@@ -105,8 +105,8 @@ def register(cls: type[Candidate]) -> type[Candidate]:
 # -- shared fitting helpers -----------------------------------------------------------------
 def refit_with(model: GeneralizedPI, rec: DiagnosisRecord, **changes) -> GeneralizedPI:
     """``model``'s hyperparameters with ``changes``, fitted on the fit rows as the model was
-    (its ridge weight chosen again by the blocked free-run CV), from its charging stage."""
-    m = GeneralizedPI(**model.refit_params(rec.u_fit.size * rec.dt_s, **changes))
+    (its ridge weight chosen again by the blocked free-run CV)."""
+    m = GeneralizedPI(**{**model.get_params(), **changes})
     return m.fit(rec.u_fit, rec.y_fit)
 
 
@@ -117,8 +117,7 @@ SCAN_NFEV = 10
 
 def scan_error(model: GeneralizedPI, rec: DiagnosisRecord, **changes) -> float:
     """Fit-part RMSE of a quick refit of ``model`` with ``changes`` (ridge weight kept)."""
-    params = {**model.refit_params(rec.u_fit.size * rec.dt_s), **changes,
-              "alphas": (model.cv_.alpha,),
+    params = {**model.get_params(), **changes, "alphas": (model.cv_.alpha,),
               "max_nfev": SCAN_NFEV}
     return GeneralizedPI(**params).fit(rec.u_fit, rec.y_fit).train_rmse_
 
@@ -284,8 +283,7 @@ def creep_profile(before: GeneralizedPI, rec: DiagnosisRecord, n_taus: int = 9) 
     take up of a relaxation (an end at the grid's edge: open there)."""
     lo, hi = rec.config.creep_min_tau_s / 3.0, rec.excitation.fit_span_s / MIN_SPANS_PER_TAU
     grid = np.geomspace(lo, hi, n_taus)
-    params = before.refit_params(rec.u_fit.size * rec.dt_s, alphas=(before.cv_.alpha,),
-                                 max_nfev=SCAN_NFEV)
+    params = {**before.get_params(), "alphas": (before.cv_.alpha,), "max_nfev": SCAN_NFEV}
     u, y, obs = rec.u_fit, rec.y_fit, rec.fit_obs
     fits = [GeneralizedPI(**{**params, "output_taus_s": (*before.output_taus_s, float(t))}
                           ).fit(u, y) for t in grid]
@@ -551,21 +549,20 @@ class RateDependence(Candidate):
     def around(self, model, rec):
         if model.output_rate:
             return "the model already has a charging-current term"
-        est = rate_estimate(model, rec)
         m = copy.deepcopy(model)
         m.output_rate = True
+        est = rate_estimate(model, m, rec)
         m.output_coef_ = np.concatenate([[est["gain_mm_per_v_per_s"]], m.output_coef_])
         return Fitted(m, est)
 
 
-def rate_estimate(base: GeneralizedPI, rec: DiagnosisRecord) -> dict:
-    """The gain k (mm per V/s) of the charging current ``k dv/dt`` fitted, over the fit rows,
-    to what ``base`` leaves, with its Wald 95 % interval at the residual's effective sample
-    size."""
+def rate_estimate(base: GeneralizedPI, with_rate: GeneralizedPI, rec: DiagnosisRecord) -> dict:
+    """The gain k (mm per V/s) of the charging current ``k dv/dt`` (``with_rate``'s first
+    output channel) fitted, over the fit rows, to what ``base`` leaves, with its Wald 95 %
+    interval at the residual's effective sample size."""
     u, obs = rec.u_fit, rec.fit_obs
     r = (rec.y_fit - base.simulate(u))[obs]
-    v = base._charge(u, base._theta)
-    x = (np.diff(v, prepend=0.0) / rec.dt_s)[obs]
+    x = with_rate._output_channels(u, with_rate._theta)[obs, 0]
     g = float(x @ r / (x @ x))
     e = r - g * x
     half = 1.96 * math.sqrt(float(e @ e) / effective_samples(e) / float(x @ x))

@@ -14,17 +14,17 @@ from dataclasses import replace
 import numpy as np
 from scipy.stats import chi2
 
-from ..hysteresis import DEFAULT_MEMORY_TAUS_S, INITIAL_TAU_FACTORS, GeneralizedPI
-from .candidates import CANDIDATES, Fitted, effective_samples, fit_sse, refit_with
+from ..hysteresis import DEFAULT_MEMORY_TAUS_S, GeneralizedPI
+from .candidates import CANDIDATES, Fitted, effective_samples, fit_sse
 from .config import DiagnosisConfig
 from .decision import holm, loss_differential_test, passes
 from .experiment import design_experiment
 from .record import DiagnosisRecord
 from .results import CandidateResult, Diagnosis, Evidence, FitScreen, Outcome, RecordShare, Round
 
-#: Trust-region iterations of the core model's fits and of its candidates' refits: without
-#: direction memory the core converges within them from a good start (it is fitted from each
-#: start of the grid, :func:`fit_from_each_start`).
+#: Trust-region iterations of the core model's fits and of its candidates' refits (with one
+#: start each): without direction memory the core converges within them, and every round
+#: refits it many times, so the start grid's extra linear fits would multiply the run time.
 CORE_NFEV = 25
 
 
@@ -38,33 +38,9 @@ def core_model(rec: DiagnosisRecord, progress=None) -> GeneralizedPI:
     above all) overfit them (held-out error several times the blocked CV's), which would bias
     the loss differentials the decision rests on."""
     taus = tuple(t for t in DEFAULT_MEMORY_TAUS_S if t < rec.config.creep_min_tau_s)
-    params = GeneralizedPI(memory_taus_s=taus, delay_s=0.0, dt_s=rec.dt_s,
-                           direction_memory_v=(), max_nfev=CORE_NFEV).get_params()
-    return fit_from_each_start(params, rec, progress)
-
-
-def fit_from_each_start(params: dict, rec: DiagnosisRecord, progress=None) -> GeneralizedPI:
-    """A GPI with ``params`` fitted on the fit rows from each charging time constant of the
-    start grid, the one with the lowest fit-rows free-run error kept. The charging stage makes
-    the fit non-convex, and the grid's own ranking (by the linear fit at each start) can put
-    a lag six times too slow first: on a clean 240 s record, a model at three times the best
-    one's error."""
-    fits = [GeneralizedPI(**{**params, "start_tau_factors": (f,)}).fit(rec.u_fit, rec.y_fit)
-            for f in INITIAL_TAU_FACTORS]
-    best = min(fits, key=lambda m: fit_sse(m, rec))
-    if progress is not None:
-        progress(f"core model fitted from {len(fits)} starts: fit RMSE "
-                 f"{', '.join(f'{m.train_rmse_:.4f}' for m in fits)} mm; kept "
-                 f"{best.train_rmse_:.4f} (charging time constant {best.charge_tau_s_:.3g} s)")
-    return best
-
-
-def settle(model: GeneralizedPI, rec: DiagnosisRecord) -> GeneralizedPI:
-    """An accepted own model, fitted as the core is (from each start of the grid) when that
-    fits the fit rows better than the round's refit from one start: the model the user gets
-    is then fitted as its clean twin would be, and the next round starts from it."""
-    grid = fit_from_each_start(model.get_params(), rec)
-    return grid if fit_sse(grid, rec) < fit_sse(model, rec) else model
+    return GeneralizedPI(memory_taus_s=taus, delay_s=0.0, dt_s=rec.dt_s, direction_memory_v=(),
+                         max_nfev=CORE_NFEV, start_tau_factors=(1.0,), progress=progress
+                         ).fit(rec.u_fit, rec.y_fit)
 
 
 def _given(model, rec: DiagnosisRecord) -> GeneralizedPI:
@@ -139,14 +115,11 @@ def fit_screen(current_sse: float, n_eff: float, candidate, model, rec, alpha: f
 
 def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, given: bool,
               progress) -> tuple[Round, Fitted | None]:
-    """One round: every candidate in ``names`` fitted around ``current`` and judged against
-    ``current`` fitted the same way (own model: refitted from its charging stage as each
-    candidate is, so that a differential measures the block, not a fit that went further)."""
+    """One round: every candidate in ``names`` fitted around ``current`` and judged."""
     cfg = rec.config
-    base = current if given else refit_with(current, rec)
-    e_cur = held_error(base, rec)
+    e_cur = held_error(current, rec)
     margin = cfg.material_noise_share * rec.excitation.noise_floor_mm ** 2
-    r_fit = (base.simulate(rec.u_fit) - rec.y_fit)[rec.fit_obs]
+    r_fit = (current.simulate(rec.u_fit) - rec.y_fit)[rec.fit_obs]
     sse_fit, n_eff = float(r_fit @ r_fit), effective_samples(r_fit)
     results, tested, untestable = {}, {}, {}
     for name in names:
@@ -243,7 +216,7 @@ def diagnose_records(records, *, model=None, config: DiagnosisConfig | None = No
     else:
         say(f"fitting the core model on {int(rec.fit_rows.sum())} samples "
             f"({', '.join(f'the first {s.cut - s.start} of {s.name}' for s in rec.segments)})")
-        current = core_model(rec, say)
+        current = core_model(rec)
     d = Diagnosis(rec.t_s, rec.u_v, rec.y_mm, rec.held_rows, rec.segments, cfg, given,
                   current, current,
                   noise_floor_mm=rec.excitation.noise_floor_mm,
@@ -260,7 +233,7 @@ def diagnose_records(records, *, model=None, config: DiagnosisConfig | None = No
         refined = CANDIDATES[rnd.accepted].refine(current, rec, given)
         if refined:
             d.rounds[-1] = _with_params(rnd, refined)
-        current = fitted.model if given else settle(fitted.model, rec)
+        current = fitted.model
         names.remove(rnd.accepted)
     d.model_after = current
     d.next_experiment = design_experiment(d, rec)
