@@ -105,24 +105,6 @@ def test_creep_needs_holds_and_is_found_on_them():
     assert p["gain_ci_mm_per_v"][0] < p["gain_mm_per_v"] < p["gain_ci_mm_per_v"][1] < 0
 
 
-def test_rate_dependence_is_named_with_its_gain_with_and_without_a_given_model():
-    """The charging current's bending adds after the bending map, which the core's fast
-    relaxations (inside the map) cannot stand in for: it is testable on the record alone."""
-    fx = {"rate_dependence": {"gain_mm_per_v_per_s": 0.1}}
-    d = diagnose(plant_record(fx, 240.0, 0))
-    assert d.effects_found == ["rate_dependence"]
-    p = next(r for r in d.candidates if r.name == "rate_dependence").evidence.params
-    assert p["gain_mm_per_v_per_s"] == pytest.approx(0.1, abs=0.015)
-    assert d.rmse_after_mm < 0.5 * d.rmse_before_mm
-    day1 = plant_record({}, 150.0, 2)
-    model = core_model(DiagnosisRecord(day1.t_s, day1.u_v, day1.y_mm, DiagnosisConfig()))
-    g = diagnose(plant_record(fx, 150.0, 3), model=model)
-    assert g.effects_found[:1] == ["rate_dependence"]
-    lo, hi = next(r for r in g.candidates
-                  if r.name == "rate_dependence").evidence.params["gain_ci_mm_per_v_per_s"]
-    assert lo < 0.1 < hi
-
-
 def test_a_given_model_gets_the_block_of_what_changed_fitted_around_it():
     day1 = plant_record({}, 150.0, 2)
     rec1 = DiagnosisRecord(day1.t_s, day1.u_v, day1.y_mm, DiagnosisConfig())

@@ -30,6 +30,8 @@ from ..hysteresis import (
     GeneralizedPI,
     dead_zone,
     estimate_delay,
+    hinge_basis,
+    hinge_slope,
     lowpass_bank,
 )
 from .experiment import Probe, crossings, holds, probe_level_v
@@ -143,6 +145,48 @@ def descend_delay(model: GeneralizedPI, rec: DiagnosisRecord, start: int, lo: in
         d = min(better, key=err)
     tried = ", ".join(f"{k}: {cache[k]:.4f}" for k in sorted(cache))
     return d, f"linear scan {start} samples; quick refits (samples: fit RMSE mm) {tried}"
+
+
+def feature_names(m: GeneralizedPI) -> list[str]:
+    """Names of the model's raw feature columns, in order."""
+    return (["v"] + [f"relax {t:g} s" for t in m.memory_taus_s_]
+            + [f"play {i}" for i in range(m.thresholds_.size)]
+            + [f"travel {t:g} V" for t in m.path_memory_v]
+            + [f"direction {c} {t:g} V" for c in range(m.n_direction_channels)
+               for t in m.direction_memory_v]
+            + (["dv/dt"] if m.rate_channel else []))
+
+
+def with_new_columns(model: GeneralizedPI, rec: DiagnosisRecord, change, iterations: int = 3
+                     ) -> GeneralizedPI:
+    """A copy of ``model`` with ``change(copy)`` adding feature columns; only their weights
+    are fitted (Gauss-Newton through the frozen output map, on the fit rows)."""
+    m = copy.deepcopy(model)
+    change(m)
+    old = dict(zip(feature_names(model), range(model.feature_mean_.size), strict=True))
+    names = feature_names(m)
+    u, y, obs = rec.u_fit, rec.y_fit, rec.fit_obs
+    F = m._raw_features(u, m._theta)
+    mean, std = F[obs].mean(axis=0), F[obs].std(axis=0)
+    scale = np.where(std > 0, std, 1.0)
+    w = np.zeros(len(names) + 1)
+    w[-1] = model.weights_[-1]
+    for j, n in enumerate(names):
+        if n in old:
+            i = old[n]
+            mean[j], scale[j], w[j] = model.feature_mean_[i], model.feature_scale_[i], \
+                model.weights_[i]
+    new = np.array([n not in old for n in names] + [False])
+    m.feature_mean_, m.feature_scale_ = mean, scale
+    A = np.column_stack([(F - mean) / scale, np.ones(u.size)])
+    for _ in range(iterations):
+        z = A @ w
+        r = y - m.output_stage(hinge_basis(z, m.knots_) @ m.map_coef_,
+                               np.arange(u.size) * rec.dt_s)
+        J = A[:, new] * hinge_slope(z, m.knots_, m.map_coef_)[:, None]
+        w[new] += np.linalg.lstsq(J[obs], r[obs], rcond=None)[0]
+    m.weights_ = w
+    return m
 
 
 def fit_sse(model: GeneralizedPI, rec: DiagnosisRecord) -> float:
@@ -526,47 +570,26 @@ class DeadZone(Candidate):
 class RateDependence(Candidate):
     name = "rate_dependence"
     meaning = ("bending that follows the charging current, not the charge (water dragged "
-               "with the migrating cations): loops widen with frequency, a step overshoots")
+               "with the migrating cations): loops widen with frequency")
 
     def not_testable(self, rec, model, given):
-        # the block adds k dv/dt to the tip after the bending map; the core's fast relaxations
-        # can only put a current inside the map, where the bending's curvature distorts it
-        lag_s = rec.config.min_lag_samples * rec.dt_s
-        if not model.rate_limit or model.charge_tau_s_ < lag_s:
-            tau = model.charge_tau_s_ if model.rate_limit else 0.0
-            return (f"the model resolves no charging lag (time constant {tau:.3g} s, under "
-                    f"{lag_s:.3g} s): without one the charging current is the input's own "
-                    f"differences and a term on it a lead filter; record at a higher rate if "
-                    f"the actuator charges faster than that")
+        if not given:
+            return ("without a given model the core's fastest relaxation (0.05 s) beside the "
+                    "charge already spans the charging current (v - x_0.05 ~ 0.05 dv/dt), so "
+                    "a channel for it cannot be told apart; give another day's model "
+                    "(--model) to see a rate dependence appear")
         return fast_input_reason(rec, model, "rate-dependent bending")
 
     def refit(self, model, rec):
-        if model.output_rate:
-            return "the model already has a charging-current term"
-        m = refit_with(model, rec, output_rate=True)
-        return Fitted(m, {"gain_mm_per_v_per_s": float(m.output_coef_[0])})
+        return "fitted only around a given model"
 
     def around(self, model, rec):
-        if model.output_rate:
-            return "the model already has a charging-current term"
-        m = copy.deepcopy(model)
-        m.output_rate = True
-        est = rate_estimate(model, m, rec)
-        m.output_coef_ = np.concatenate([[est["gain_mm_per_v_per_s"]], m.output_coef_])
-        return Fitted(m, est)
+        if model.rate_channel:
+            return "the model already has a charging-current channel"
 
-
-def rate_estimate(base: GeneralizedPI, with_rate: GeneralizedPI, rec: DiagnosisRecord) -> dict:
-    """The gain k (mm per V/s) of the charging current ``k dv/dt`` (``with_rate``'s first
-    output channel) fitted, over the fit rows, to what ``base`` leaves, with its Wald 95 %
-    interval at the residual's effective sample size."""
-    u, obs = rec.u_fit, rec.fit_obs
-    r = (rec.y_fit - base.simulate(u))[obs]
-    x = with_rate._output_channels(u, with_rate._theta)[obs, 0]
-    g = float(x @ r / (x @ x))
-    e = r - g * x
-    half = 1.96 * math.sqrt(float(e @ e) / effective_samples(e) / float(x @ x))
-    return {"gain_mm_per_v_per_s": g, "gain_ci_mm_per_v_per_s": [g - half, g + half]}
+        def add(m):
+            m.rate_channel = True
+        return Fitted(with_new_columns(model, rec, add), {"channel": "dv/dt"})
 
 
 OWN_MAP_REASON = ("without a given model the output map is fitted to this record and carries "

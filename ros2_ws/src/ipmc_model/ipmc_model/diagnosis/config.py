@@ -31,10 +31,6 @@ class DiagnosisConfig:
     #: Share of the input's power above the charging corner (1 / (2 pi tau)) that also tells a
     #: delay from that lag (there the lag's phase levels off and a delay's keeps growing).
     delay_power_share: float = 0.1
-    #: A charging lag is resolved when its time constant is at least this many sample
-    #: periods (the fit's lower bound is one): a shorter one is the sampling's own hold, and
-    #: its current the input's first difference, not a charging current.
-    min_lag_samples: float = 2.0
     #: Widest dead zone searched (V), and the share of fit samples with |u| below it needed.
     dead_zone_max_v: float = 1.0
     dead_zone_min_share: float = 0.05
@@ -53,7 +49,7 @@ class DiagnosisConfig:
         if not 0 < self.family_alpha < 0.5:
             raise ValueError(f"family_alpha must be in (0, 0.5), got {self.family_alpha}")
         positive = ("material_noise_share", "creep_min_tau_s", "hold_min_s", "step_share",
-                    "dead_zone_max_v", "max_delay_s", "min_lag_samples")
+                    "dead_zone_max_v", "max_delay_s")
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
