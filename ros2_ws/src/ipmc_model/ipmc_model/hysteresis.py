@@ -416,7 +416,7 @@ class GeneralizedPI:
         relax = lowpass_bank(v, self.output_taus_s, self.dt_s)[0]
         if not self.output_rate:
             return relax
-        return np.column_stack([np.diff(v, prepend=0.0) / self.dt_s, relax])
+        return np.column_stack([self._charging_current(v), relax])
 
     # -- features ----------------------------------------------------------------------------
     def _charge(self, u: np.ndarray, theta) -> np.ndarray:
@@ -435,13 +435,17 @@ class GeneralizedPI:
                                       self.direction_memory_v)
         return np.hstack([ch, plays, travel, direction, self._extra_channels(v)])
 
+    def _charging_current(self, v: np.ndarray, v_prev=None) -> np.ndarray:
+        """dv/dt (V/s) of charges ``v``, shape (N,); ``v_prev``: each one's previous charge
+        (None: ``v`` is a run from rest)."""
+        prev = np.concatenate([[0.0], v[:-1]]) if v_prev is None else v_prev
+        return (v - prev) / self.dt_s
+
     def _extra_channels(self, v: np.ndarray, v_prev=None) -> np.ndarray:
-        """The charging current, shape (N, 0 or 1), for charges ``v``; ``v_prev``: each one's
-        previous charge (None: ``v`` is a run from rest)."""
+        """The charging current as a channel inside the map, shape (N, 0 or 1)."""
         if not self.rate_channel:
             return np.zeros((v.size, 0))
-        prev = np.concatenate([[0.0], v[:-1]]) if v_prev is None else v_prev
-        return ((v - prev) / self.dt_s)[:, None]
+        return self._charging_current(v, v_prev)[:, None]
 
     @property
     def n_direction_channels(self) -> int:
@@ -873,7 +877,7 @@ class GpiStepper:
         r = int(m.output_rate)
         added = n.out_relax @ m.output_coef_[r:]
         if r:
-            added = added + m.output_coef_[0] * (n.v - self.state.v) / m.dt_s
+            added = added + m.output_coef_[0] * m._charging_current(n.v, self.state.v)
         return m.output_stage(hinge_basis(z, m.knots_) @ m.map_coef_, self.state.k * m.dt_s,
                               added)
 
