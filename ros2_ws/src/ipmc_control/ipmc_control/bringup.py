@@ -243,7 +243,7 @@ def excite_specs(*, rig_port: str | None, lockstep: bool, excitation: dict,
     # until bringup stops it (GraphRun) instead of running on alone with nobody commanding.
     specs.append(NodeSpec("excitation", "excitation", {
         **excitation, "rate_hz": rate_hz, "min_subscribers": listeners,
-        "exit_at_end": not sim_time}))
+        "exit_at_end": not sim_time, "use_sim_time": sim_time}))
     plant = plant_spec(rig_port=rig_port, lockstep=lockstep, rate_hz=rate_hz,
                        plant_effects=plant_effects, listeners=listeners)
     if sim_time:   # the wait for a command that will not come: no "stepped on" warnings

@@ -34,6 +34,7 @@ experiment). Progress goes to stderr. No ROS import here: the graph runs as a co
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import signal
 import subprocess
@@ -489,6 +490,20 @@ def _progress(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
 
 
+@contextlib.contextmanager
+def _interruptible():
+    """SIGINT and SIGTERM raise KeyboardInterrupt (the loop then stops the graph at 0 V and
+    keeps the records), set explicitly: a process started with SIGINT ignored, as a script's
+    background job is, would otherwise inherit that and run on. The old handlers come back."""
+    sigs = (signal.SIGINT, signal.SIGTERM)
+    old = {s: signal.signal(s, signal.default_int_handler) for s in sigs}
+    try:
+        yield
+    finally:
+        for s, handler in old.items():
+            signal.signal(s, handler)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``ipmc investigate``; returns the exit code (130 after Ctrl-C)."""
     from .investigate_report import check_out_dir, write_investigation
@@ -506,8 +521,9 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"ipmc investigate: error: {exc}", file=sys.stderr)
         return 1
-    inv = investigate(runner, first, residual_diagnoser(progress=_progress), out,
-                      budget_s=60.0 * args.budget_min, progress=_progress)
+    with _interruptible():
+        inv = investigate(runner, first, residual_diagnoser(progress=_progress), out,
+                          budget_s=60.0 * args.budget_min, progress=_progress)
     summary = write_investigation(inv, out)
     if inv.error:
         print(f"ipmc investigate: error in {inv.error}", file=sys.stderr)

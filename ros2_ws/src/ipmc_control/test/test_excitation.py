@@ -117,3 +117,39 @@ def test_open_loop_graph_has_no_controller_and_waits_for_its_listeners(lockstep,
                                         excitation={"kind": "mixed"}, plant_effects=[],
                                         record=record)}
     assert "driver" in rig and "sim_plant" not in rig
+
+
+@pytest.mark.parametrize("sim_time", [False, True])
+def test_before_its_listeners_match_a_lockstep_excitation_holds_the_sample_unanswered(
+        sim_time, monkeypatch):
+    """In real time a sample before the start is answered with 0 V; on sim time (a lock-step
+    plant waits for the answer) it is held and answered with the first voltage once the
+    listeners have matched, so the record carries no 0 V lead-in of the graph's discovery."""
+    import os
+
+    rclpy = pytest.importorskip("rclpy")
+    from geometry_msgs.msg import PointStamped
+    from rclpy.parameter import Parameter
+
+    from ipmc_control.nodes.excitation import ExcitationNode
+
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(150 + os.getpid() % 50))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = ExcitationNode(context=context, parameter_overrides=[
+            Parameter("kind", value="steps"), Parameter("duration_s", value=6.0),
+            Parameter("hold_s", value=2.0), Parameter("min_subscribers", value=1),
+            Parameter("use_sim_time", value=sim_time)])
+        sent: list[float] = []
+        monkeypatch.setattr(node, "_command", lambda u_v, sample: sent.append(u_v))
+        first_v = float(node.excitation.u_v[0])
+        node._on_sample(PointStamped())          # nobody listens yet: the gate is shut
+        assert sent == ([] if sim_time else [0.0])
+        monkeypatch.setattr(node, "_gate", type("Open", (), {"ready": lambda self: True})())
+        node._answer_held()
+        assert sent == ([first_v] if sim_time else [0.0])
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)

@@ -10,7 +10,10 @@ an ``ipmc diagnose`` next_experiment.json at ``rate_hz``); never beyond 3 V.
 
 The excitation starts with the first sample after ``/ipmc/command`` has matched
 ``min_subscribers`` subscriptions (the plant and a recorder), so a recorder holds every
-command; until then each sample is answered with 0 V. After the last voltage it logs
+command. Until then, in real time each sample is answered with 0 V; on sim time (a lock-step
+plant, which waits for its answer) the sample is held unanswered and answered with the first
+voltage once the gate opens, so the plant does not run ahead through 0 V samples the graph's
+discovery happened to take. After the last voltage it logs
 "excitation: finished" and commands 0 V; then it exits (code 0) ``linger_s`` later, or, with
 ``exit_at_end:=false``, answers no further sample and runs until stopped: a lock-step plant
 then waits instead of running on alone (``ipmc bringup --lockstep --excite`` stops the plant
@@ -74,6 +77,7 @@ class ExcitationNode(Node):
         self._k = -1        # index of the next voltage; -1 until the start
         self._linger_s, self._exit_at_end = p["linger_s"], p["exit_at_end"]
         self._quiet = False
+        self._held: PointStamped | None = None   # sim time: the sample waiting for the start
         self.pub = self.create_publisher(Float64, "/ipmc/command", COMMAND_QOS)
         self.pub_stamped = self.create_publisher(Vector3Stamped, "/ipmc/command_stamped",
                                                  COMMAND_QOS)
@@ -82,13 +86,25 @@ class ExcitationNode(Node):
                                warn=self.get_logger().warn)
         self.create_subscription(PointStamped, "/ipmc/displacement", self._on_sample,
                                  SAMPLE_QOS)
+        self._sim_time = bool(self.get_parameter("use_sim_time").value)
+        if self._sim_time:
+            self.create_timer(0.01, self._answer_held,
+                              clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f"excitation: {self.excitation.describe()}")
+
+    def _answer_held(self) -> None:
+        if self._held is not None and self._gate.ready():
+            held, self._held = self._held, None
+            self._on_sample(held)
 
     def _on_sample(self, msg: PointStamped) -> None:
         u = self.excitation.u_v
         if self._k < 0 and self._gate.ready():
             self._k = 0
             self.get_logger().info("excitation: started")
+        elif self._k < 0 and self._sim_time:
+            self._held = msg     # answered by _answer_held once the gate opens
+            return
         if 0 <= self._k < u.size:
             self._command(float(u[self._k]), msg)
             self._k += 1
