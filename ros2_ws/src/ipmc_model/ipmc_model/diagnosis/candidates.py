@@ -239,8 +239,14 @@ def creep_taus(model: GeneralizedPI, rec: DiagnosisRecord, given: bool = False
                  and t not in have)
 
 
-#: Holds proposed for creep last this many of its time constants (95 % settled).
-HOLD_TAUS = 3.0
+#: Holds proposed for creep last this many of its time constants (86 % settled).
+HOLD_TAUS = 2.0
+#: Levels of the proposed holds, as shares of the probe level: both signs, two sizes, each
+#: hold a step from the last. The loss differential's samples are correlated over about a
+#: time constant, so the test's effective sample size grows with the number of settlings,
+#: not their length: four holds of two time constants give twice the settlings of two of
+#: three, in 4/3 of the time.
+HOLD_LEVELS = (1.0, -1.0, 0.5, -0.5)
 #: Steps proposed for a delay: this many, each held this long (s; > 5 charging time
 #: constants of an IPMC, ~0.3 s, so that each onset starts from a settled charge).
 PROBE_STEPS, PROBE_STEP_S = 8, 1.5
@@ -276,10 +282,11 @@ class Creep(Candidate):
         tau = max(float(upper), rec.config.creep_min_tau_s)
         hold_s = max(HOLD_TAUS * tau, rec.config.hold_min_s)
         a = probe_level_v(rec)
-        return Probe(self.name, holds((a, -a), hold_s, 1.0 / rec.dt_s),
-                     f"holds of {hold_s:.0f} s ({HOLD_TAUS:g} x the creep's time constant "
-                     f"{tau:g} s) at +-{a:.2f} V: a relaxation settles while the input holds "
-                     f"still, the path memory does not move")
+        return Probe(self.name, holds(np.array(HOLD_LEVELS) * a, hold_s, 1.0 / rec.dt_s),
+                     f"{len(HOLD_LEVELS)} holds of {hold_s:.0f} s ({HOLD_TAUS:g} x the creep's "
+                     f"time constant {tau:.3g} s) at +-{a:.2f} and +-{a / 2:.2f} V: a "
+                     f"relaxation settles while the input holds still, the path memory does "
+                     f"not move")
 
     def poorly_determined(self, result):
         p = result.evidence.params if result.evidence is not None else {}
