@@ -41,7 +41,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Protocol
 
@@ -83,12 +83,14 @@ class PlannedInput:
 
 @dataclass(frozen=True)
 class Recorded:
-    """A record: time (s), applied voltage (V), tip (mm) and where it was written."""
+    """A record: time (s), applied voltage (V), tip (mm), where it was written, and the parts
+    of the experiment it played (its probes are where the diagnosis judges their effects)."""
 
     t_s: np.ndarray
     u_v: np.ndarray
     y_mm: np.ndarray
     path: Path
+    parts: tuple[ExperimentPart, ...] = ()
 
     @property
     def duration_s(self) -> float:
@@ -256,7 +258,7 @@ def play_round(number: int, plan: PlannedInput, undecided: tuple[str, ...], runn
     t0 = time.monotonic()
     why = f" to decide {', '.join(undecided)}" if undecided else ""
     say(f"round {number}: playing {plan.label}{why} on {runner.describe()} (into {out_dir})")
-    rec = runner.record(plan, out_dir)
+    rec = replace(runner.record(plan, out_dir), parts=plan.parts)
     records = [*(earlier or []), rec]
     say(f"round {number}: recorded {rec.u_v.size} samples ({rec.duration_s:.0f} s) in "
         f"{rec.path}; diagnosing")
@@ -330,7 +332,7 @@ def residual_diagnoser(candidates: list[str] | None = None, progress: Progress |
 
     def run(records: list[Recorded], report_dir: Path) -> Verdicts:
         records = records if together else records[-1:]
-        d = diagnose_records([(str(r.path), r.t_s, r.u_v, r.y_mm) for r in records],
+        d = diagnose_records([(str(r.path), r.t_s, r.u_v, r.y_mm, r.parts) for r in records],
                              candidates=candidates,
                              progress=(lambda text: progress("  " + text)) if progress else None)
         summary = write_report(d, report_dir, data_label=", ".join(str(r.path) for r in records))

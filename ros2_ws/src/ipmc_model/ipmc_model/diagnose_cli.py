@@ -1,7 +1,7 @@
 """``ipmc diagnose``: residual -> missing physical effect -> model with it, before and after.
 
-``ipmc diagnose --data FILE.csv|BAG [--data ...] [--model MODEL] --report DIR
-[--effects NAME ...]``
+``ipmc diagnose --data FILE.csv|BAG [--data ...] [--experiment FILE] [--model MODEL]
+--report DIR [--effects NAME ...]``
 
 Writes ``summary.json``, ``report.md``, ``residual.png`` and the model files before and after
 to DIR; progress goes to stderr. See :mod:`ipmc_model.diagnosis` for the procedure.
@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+
+import numpy as np
 
 from .diagnosis import CANDIDATES
 from .diagnosis.report import check_report_dir, write_report
@@ -29,6 +31,10 @@ def _parser() -> argparse.ArgumentParser:
                         "each is split the same way, the models are fitted on the fit parts of "
                         "all and judged on the held-out parts of all, and the report says "
                         "which record decided what")
+    p.add_argument("--experiment", metavar="FILE",
+                   help="the next_experiment.json the last --data record played (ipmc bringup "
+                        "--experiment): each effect with a probe in its held-out part is then "
+                        "judged on that probe's rows, the other probes showing other effects")
     p.add_argument("--model", help="a GPI model file (ipmc identify's default, or a diagnosis's "
                                    "model_after.json), e.g. from another day: kept as it is, "
                                    "and each effect's block is fitted around it (what changed "
@@ -50,6 +56,22 @@ def _progress(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
 
 
+def _played(path: str, record) -> tuple:
+    """The parts of the experiment ``path``, where the record that played it has them."""
+    from .diagnosis.experiment import played_parts, read_experiment
+
+    parts, u_v, rate_hz = read_experiment(path)
+    name, t_s, u_rec = record[0], record[1], record[2]
+    dt_s = float(np.median(np.diff(t_s)))
+    if abs(rate_hz * dt_s - 1.0) > 0.01:
+        raise ValueError(f"{path} is sampled at {rate_hz:g} Hz but {name} at "
+                         f"{1 / dt_s:.4g} Hz: it is not the experiment that record played")
+    try:
+        return played_parts(parts, u_v, u_rec, dt_s)
+    except ValueError as exc:
+        raise ValueError(f"{name} did not play all of {path}: {exc}") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``ipmc diagnose``; returns the exit code."""
     args = _parser().parse_args(argv)
@@ -67,6 +89,8 @@ def main(argv: list[str] | None = None) -> int:
             print_notes("ipmc diagnose", notes)
             _progress(f"{path}: {len(rec)} samples at {rec.rate_hz:.4g} Hz")
             records.append((str(path), rec.t_s, rec.u_v, rec.y_mm))
+        if args.experiment:
+            records[-1] = (*records[-1], _played(args.experiment, records[-1]))
         d = diagnose_records(records, model=model, candidates=args.effects,
                              progress=_progress)
         summary = write_report(d, args.report, data_label=", ".join(map(str, args.data)))

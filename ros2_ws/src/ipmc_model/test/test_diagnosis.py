@@ -258,6 +258,78 @@ def test_the_next_experiment_makes_creep_delay_and_dead_zone_testable():
     assert {p.effect for p in held} == set(names)
 
 
+def test_a_record_of_an_experiment_judges_each_effect_on_its_own_probe():
+    """The held-out part of an experiment's record is its probes; an effect with a probe is
+    judged on that probe's rows, any other effect on every judged row."""
+    from ipmc_model.diagnosis.experiment import Probe, assemble, holds
+
+    first = plant_record({}, 60.0, 1, holds=True)
+    cfg = DiagnosisConfig()
+    rec0 = DiagnosisRecord(first.t_s, first.u_v, first.y_mm, cfg)
+    x = assemble([Probe("creep", holds((1.5, -1.5), 20.0, RATE), "holds"),
+                  Probe("delay", holds((1.0, 0.0, -1.0), 1.5, RATE), "steps")], rec0)
+    run = IpmcPlant(seed=2, dt_s=1 / RATE).run(x.u_v)
+    rec = DiagnosisRecord(run.t_s, x.u_v, run.y_mm, cfg, parts=x.parts)
+    held = {p.effect: p for p in x.parts if "held-out" in p.name}
+    for effect in ("creep", "delay"):
+        rows = np.flatnonzero(rec.judged_for(effect))
+        part = held[effect]
+        assert rows.size > 0 and np.all(rec.judged[rows])
+        assert rows[0] * rec.dt_s >= part.start_s - 1e-9
+        assert rows[-1] * rec.dt_s < part.start_s + part.duration_s
+    both = rec.judged_for("creep") | rec.judged_for("delay")
+    assert not np.any(rec.judged_for("creep") & rec.judged_for("delay"))
+    # the held-out part is the probes (and the identification input's last rows when the
+    # experiment's 60 s minimum of it pushes the split before them)
+    first_probe_s = min(p.start_s for p in held.values())
+    assert not np.any(both & ~rec.judged)
+    assert np.all(np.flatnonzero(rec.judged & ~both) * rec.dt_s < first_probe_s)
+    assert np.array_equal(rec.judged_for("drift"), rec.judged)
+    plain = DiagnosisRecord(run.t_s, x.u_v, run.y_mm, cfg)   # no parts: every judged row
+    assert np.array_equal(plain.judged_for("delay"), plain.judged)
+
+
+def test_cli_judges_the_experiment_a_record_played_on_its_probes(tmp_path, capsys):
+    """``--experiment``: the record (begun 3 s before the experiment, as a recorder that
+    started first) has its parts found by its voltages; the delay is judged on its probe."""
+    from ipmc_model.diagnosis.experiment import (
+        Experiment,
+        Probe,
+        assemble,
+        holds,
+        played_parts,
+    )
+
+    first = plant_record({}, 60.0, 1, holds=True)
+    rec0 = DiagnosisRecord(first.t_s, first.u_v, first.y_mm, DiagnosisConfig())
+    x = assemble([Probe("creep", holds((1.5, -1.5), 20.0, RATE), "holds"),
+                  Probe("delay", holds((1.0, 0.0, -1.0, 0.5), 1.5, RATE), "steps")], rec0)
+    exp = tmp_path / "next_experiment.json"
+    exp.write_text(json.dumps(Experiment(RATE, 0.7, x.u_v, x.parts).as_dict()))
+    lead = int(3.0 * RATE)
+    u = np.r_[np.zeros(lead), x.u_v]
+    run = IpmcPlant(effects={"delay": {"delay_s": 0.1}}, seed=3, dt_s=1 / RATE).run(u)
+    data = save_csv(Record(run.t_s, u, run.y_mm), tmp_path / "day2.csv")
+    moved = played_parts(x.parts, x.u_v, u, 1 / RATE)
+    assert all(abs(m.start_s - p.start_s - 3.0) < 1e-9
+               for m, p in zip(moved, x.parts, strict=True))
+    out = tmp_path / "report"
+    assert main(["--data", str(data), "--experiment", str(exp), "--report", str(out),
+                 "--effects", "delay", "drift"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    ev = {r["name"]: r["evidence"] for r in s["candidates"]}
+    probe = next(p for p in x.parts if p.effect == "delay" and "held-out" in p.name)
+    rows = int(round(probe.duration_s * RATE))
+    assert ev["delay"]["judged_on"] == f"its probe's {rows} held-out rows"
+    assert ev["drift"]["judged_on"] == ""
+    assert s["effects_found"] == ["delay"]
+    # an experiment the record did not play: refused in one sentence
+    short = save_csv(Record(run.t_s[:500], u[:500], run.y_mm[:500]), tmp_path / "short.csv")
+    assert main(["--data", str(short), "--experiment", str(exp), "--report",
+                 str(tmp_path / "r2")]) == 1
+    assert "did not play all of" in capsys.readouterr().err
+
+
 def test_records_are_joined_by_unmeasured_rests_and_each_split_the_same_way():
     a, b = plant_record({}, 60.0, 1), plant_record({}, 90.0, 2, holds=True)
     cfg = DiagnosisConfig()

@@ -4,7 +4,8 @@ A candidate block is accepted when adding it to the current model (both fitted o
 fit rows) lowers the held-out free-run squared error significantly and materially:
 
 * the loss differential ``d_k = e_cur_k^2 - e_new_k^2`` over the held-out samples (those
-  within the fit part's voltage range, :attr:`DiagnosisRecord.judged`) is tested by
+  within the fit part's voltage range, :meth:`DiagnosisRecord.judged_for`: on a record
+  played from a proposed experiment, the rows of the effect's own probe) is tested by
   Diebold-Mariano: its mean over a HAC (Bartlett, Newey-West) standard error, with the
   Harvey-Leybourne-Newbold small-sample factor, one-sided against Student's t; the bandwidth
   covers the differential's own autocorrelation (a free-run error is slow, so its samples are

@@ -132,6 +132,45 @@ def assemble(probes: list[Probe], rec: DiagnosisRecord, seed: int = 0) -> Experi
     return Experiment(rate, share, u_all, tuple(parts))
 
 
+def read_experiment(path) -> tuple[tuple[ExperimentPart, ...], np.ndarray, float]:
+    """The parts, voltages and rate (Hz) of a ``next_experiment.json``; ``ValueError`` in one
+    sentence if the file is not one."""
+    import json
+    from pathlib import Path
+
+    try:
+        doc = json.loads(Path(path).read_text())
+        if doc.get("format") != EXPERIMENT_FORMAT:
+            raise ValueError(f"{path} is not an {EXPERIMENT_FORMAT} file (its format is "
+                             f"{doc.get('format')!r})")
+        parts = tuple(ExperimentPart(str(p["name"]), str(p["effect"]), float(p["start_s"]),
+                                     float(p["duration_s"]), str(p["reason"]))
+                      for p in doc["parts"])
+        return parts, np.asarray(doc["u_v"], dtype=float), float(doc["rate_hz"])
+    except OSError as exc:
+        raise ValueError(f"cannot read the experiment {path}: {exc.strerror}") from None
+    except (json.JSONDecodeError, AttributeError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path} is not a readable next_experiment.json ({exc!r})") from None
+
+
+def played_parts(parts, u_experiment_v: np.ndarray, u_record_v: np.ndarray, dt_s: float
+                 ) -> tuple[ExperimentPart, ...]:
+    """``parts`` moved to where the record played them: the record can start before the
+    experiment (a recorder that started first), so the start is the lag that best matches
+    the record's voltages to the experiment's (least squares over every lag)."""
+    from scipy.signal import correlate
+
+    n, m = u_experiment_v.size, u_record_v.size
+    if m < n:
+        raise ValueError(f"the record ({m} samples) is shorter than the experiment it played "
+                         f"({n} samples)")
+    # sum over the window of (r - e)^2 = sum r^2 - 2 r.e + sum e^2, for every lag
+    cross = correlate(u_record_v, u_experiment_v, mode="valid", method="fft")
+    energy = np.convolve(u_record_v ** 2, np.ones(n), mode="valid")
+    lag = int(np.argmin(energy - 2.0 * cross))
+    return tuple(replace(p, start_s=p.start_s + lag * dt_s) for p in parts)
+
+
 def holds(levels_v, hold_s: float, rate_hz: float) -> np.ndarray:
     """Voltages held at each of ``levels_v`` for ``hold_s``, one after the other."""
     n = int(round(hold_s * rate_hz))

@@ -4,6 +4,12 @@ One record or several (another day's, an experiment's) are joined into one: in t
 each separated by a rest at 0 V whose output is not measured. Every model runs over the
 whole, is fitted on the fit rows (the first share of each record) and judged on the free run
 over the held-out rows (the rest of each); each record is split the same way.
+
+A record played from a proposed experiment (``next_experiment.json``) may come with the
+experiment's parts: its held-out part is then the probes, one per effect, and an effect with
+a probe there is judged on that probe's rows alone (:meth:`DiagnosisRecord.judged_for`). The
+other probes show other effects: a block's error on them measures how the refit moved the
+rest of the model, not the effect.
 """
 
 from __future__ import annotations
@@ -70,12 +76,14 @@ class DiagnosisRecord:
     model and every block are fitted on the rows before it and judged on the free run over
     the rows from it on. :meth:`joined` makes one of several records."""
 
-    def __init__(self, t_s, u_v, y_mm, config: DiagnosisConfig, name: str = "record"):
-        self._build([(name, t_s, u_v, y_mm)], config)
+    def __init__(self, t_s, u_v, y_mm, config: DiagnosisConfig, name: str = "record",
+                 parts=()):
+        self._build([(name, t_s, u_v, y_mm, parts)], config)
 
     @classmethod
     def joined(cls, records, config: DiagnosisConfig) -> DiagnosisRecord:
-        """Several records ``(name, t_s, u_v, y_mm)``, in order, joined by rests at 0 V."""
+        """Several records ``(name, t_s, u_v, y_mm[, parts])``, in order, joined by rests at
+        0 V; ``parts``: the :class:`ExperimentPart` s of the experiment a record played."""
         out = cls.__new__(cls)
         out._build(list(records), config)
         return out
@@ -83,7 +91,7 @@ class DiagnosisRecord:
     def _build(self, records: list, config: DiagnosisConfig) -> None:
         if not records:
             raise ValueError("no record to diagnose")
-        checked = [(name, *_checked(name, *sig)) for name, *sig in records]
+        checked = [(name, *_checked(name, *sig[:3])) for name, *sig in records]
         self.dt_s = checked[0][4]
         for name, *_, dt in checked[1:]:
             if abs(dt - self.dt_s) > 0.01 * self.dt_s:
@@ -110,6 +118,7 @@ class DiagnosisRecord:
         self.config = config
         self._split(tuple(segs))
         self.judged = self._judged()
+        self.probe_rows = self._probe_rows([r[4] if len(r) > 4 else () for r in records])
         self.excitation = self._excitation()
 
     # -- rows ----------------------------------------------------------------------------
@@ -137,9 +146,27 @@ class DiagnosisRecord:
         out.excitation = replace(self.excitation, fit_span_s=self.excitation.span_s)
         return out
 
-    def judged_error(self, y_model: np.ndarray) -> np.ndarray:
-        """``y_model - y`` over the judged held-out rows (``y_model`` over every row)."""
-        return (y_model - self.y_mm)[self.judged]
+    def judged_error(self, y_model: np.ndarray, effect: str | None = None) -> np.ndarray:
+        """``y_model - y`` over the judged held-out rows (``y_model`` over every row), those
+        of ``effect``'s probes where the records have them."""
+        return (y_model - self.y_mm)[self.judged_for(effect)]
+
+    def judged_for(self, effect: str | None = None) -> np.ndarray:
+        """The judged rows ``effect``'s test uses: its probes' held-out rows where a record
+        played from an experiment has them, else every judged row."""
+        return self.probe_rows.get(effect, self.judged)
+
+    def _probe_rows(self, parts_per_record) -> dict[str, np.ndarray]:
+        """Effect -> the judged rows of the held-out probes designed for it."""
+        out: dict[str, np.ndarray] = {}
+        for seg, parts in zip(self.segments, parts_per_record, strict=True):
+            for p in parts:
+                a = seg.start + int(round(p.start_s / self.dt_s))
+                b = min(seg.stop, a + int(round(p.duration_s / self.dt_s)))
+                if not p.effect or a < seg.cut:
+                    continue
+                out.setdefault(p.effect, np.zeros(self.u_v.size, dtype=bool))[a:b] = True
+        return {k: v & self.judged for k, v in out.items() if (v & self.judged).any()}
 
     # -- what the excitation can show ------------------------------------------------------
     def _excitation(self) -> Excitation:

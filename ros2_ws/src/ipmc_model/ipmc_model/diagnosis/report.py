@@ -21,7 +21,9 @@ METRIC = ("free-run RMSE (mm) on the held-out last {held:.0f} % of the record (o
 
 RULE = ("An effect is accepted when the current model with its block, fitted on the same fit "
         "rows as the current model, has less squared free-run error on the held-out rows "
-        "(those within the fit rows' voltage range for the last {settle:g} s): the "
+        "(those within the fit rows' voltage range for the last {settle:g} s; on a record "
+        "played from a proposed experiment, an effect with its own probe there is judged on "
+        "that probe's rows, the other probes showing other effects): the "
         "Diebold-Mariano test of the loss differential (HAC variance, Bartlett kernel, bandwidth "
         "covering the differential's own autocorrelation, Harvey-Leybourne-Newbold factor, "
         "one-sided), Holm's step-down at a family-wise {alpha:g} over the round's testable "

@@ -77,6 +77,8 @@ class Evidence:
     screen: FitScreen | None = None
     #: Each record's share when several are diagnosed at once (which record decided).
     records: tuple[RecordShare, ...] = ()
+    #: Where the candidate was judged when not on every judged held-out row (its probe's).
+    judged_on: str = ""
 
     def as_dict(self) -> dict:
         d = asdict(self)

@@ -59,20 +59,14 @@ def _given(model, rec: DiagnosisRecord) -> GeneralizedPI:
     return model
 
 
-def held_error(model: GeneralizedPI, rec: DiagnosisRecord) -> np.ndarray:
-    """Free-run error (mm) over the judged held-out rows (within the fit rows' voltage
-    range), the run starting at the record's start."""
-    return rec.judged_error(model.simulate(rec.u_v))
-
-
-def per_record(e_cur: np.ndarray, e_new: np.ndarray, rec: DiagnosisRecord
-               ) -> tuple[RecordShare, ...]:
+def per_record(e_cur: np.ndarray, e_new: np.ndarray, rec: DiagnosisRecord,
+               effect: str | None = None) -> tuple[RecordShare, ...]:
     """Each joined record's share of the judged held-out errors ``e_cur`` (current model)
-    and ``e_new`` (with the candidate); none for a single record (the round's figures are
-    its own)."""
+    and ``e_new`` (with the candidate) over ``effect``'s judged rows; none for a single
+    record (the round's figures are its own)."""
     if len(rec.segments) == 1:
         return ()
-    at = np.flatnonzero(rec.judged)
+    at = np.flatnonzero(rec.judged_for(effect))
     out = []
     for s in rec.segments:
         k = (at >= s.start) & (at < s.stop)
@@ -81,6 +75,13 @@ def per_record(e_cur: np.ndarray, e_new: np.ndarray, rec: DiagnosisRecord
         out.append(RecordShare(s.name, _rms(a) if k.any() else float("nan"),
                                _rms(b) if k.any() else float("nan"), gain))
     return tuple(out)
+
+
+def _judged_on(rec: DiagnosisRecord, effect: str) -> str:
+    """Where ``effect`` was judged, when not on every judged held-out row."""
+    if effect not in rec.probe_rows:
+        return ""
+    return f"its probe's {int(rec.probe_rows[effect].sum())} held-out rows"
 
 
 def _rms(e: np.ndarray) -> float:
@@ -117,7 +118,7 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
               progress) -> tuple[Round, Fitted | None]:
     """One round: every candidate in ``names`` fitted around ``current`` and judged."""
     cfg = rec.config
-    e_cur = held_error(current, rec)
+    y_cur = current.simulate(rec.u_v)
     margin = cfg.material_noise_share * rec.excitation.noise_floor_mm ** 2
     r_fit = (current.simulate(rec.u_fit) - rec.y_fit)[rec.fit_obs]
     sse_fit, n_eff = float(r_fit @ r_fit), effective_samples(r_fit)
@@ -131,12 +132,14 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
                              if why is not None else
                              CandidateResult(name, Outcome.REJECTED, out, number))
             continue
-        e_new = held_error(out.model, rec)
+        e_cur = rec.judged_error(y_cur, name)
+        e_new = rec.judged_error(out.model.simulate(rec.u_v), name)
         test = loss_differential_test(e_cur, e_new, margin)
         screen = fit_screen(sse_fit, n_eff, CANDIDATES[name], out.model, rec, cfg.family_alpha)
         tested[name] = (out, Evidence(_rms(e_cur), _rms(e_new), test, out.params, out.scan,
                                       screen=screen,
-                                      records=per_record(e_cur, e_new, rec)))
+                                      records=per_record(e_cur, e_new, rec, name),
+                                      judged_on=_judged_on(rec, name)))
     # the family is the candidates the round may accept and the fit rows support; rivals
     # (not testable) are tested beside it
     screened = {n: ev for n, (_, ev) in tested.items() if ev.screen.passed}
@@ -149,13 +152,15 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
         outcome, reason = _verdict(name, ev, best, passing, cfg.family_alpha, untestable)
         results[name] = CandidateResult(name, outcome, reason, number, ev)
     accepted = best if best is not None and best not in untestable else None
-    rnd = Round(number, _rms(e_cur), tuple(results[n] for n in names), accepted)
+    rnd = Round(number, _rms(rec.judged_error(y_cur)), tuple(results[n] for n in names),
+                accepted)
     return rnd, (tested[accepted][0] if accepted else None)
 
 
 def _verdict(name, ev: Evidence, best, passing, alpha, untestable) -> tuple[Outcome, str]:
     t, sc = ev.test, ev.screen
-    text = (f"held-out RMSE {ev.rmse_current_mm:.4f} -> {ev.rmse_candidate_mm:.4f} mm, mean "
+    on = f" on {ev.judged_on}" if ev.judged_on else ""
+    text = (f"held-out RMSE{on} {ev.rmse_current_mm:.4f} -> {ev.rmse_candidate_mm:.4f} mm, mean "
             f"gain {t.mean_gain_mm2:.3g} mm^2 (margin {t.margin_mm2:.3g}), DM p = "
             f"{t.p_value:.2g}, Holm p = {ev.p_holm:.2g}; fit rows: likelihood ratio "
             f"{sc.likelihood_ratio:.3g} (needs {sc.needed:.3g})")
