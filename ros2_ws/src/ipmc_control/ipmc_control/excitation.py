@@ -27,7 +27,6 @@ No ROS import: the ``excitation`` node and ``ipmc bringup`` use it, and tests ca
 from __future__ import annotations
 
 import csv
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,7 +38,6 @@ from ipmc_driver.signals import mixed, random_sine
 KINDS = ("mixed", "steps", "random-sine")
 #: The H-bridge's limit, V.
 LIMIT_V = 3.0
-EXPERIMENT_FORMAT = "ipmc-ros-experiment"
 #: Shortest input hold the diagnosis counts (creep needs holds), s.
 HOLD_MIN_S = 3.0
 #: Share of each ``mixed`` cycle spent on holds.
@@ -206,17 +204,12 @@ def load_excitation(path: str | Path, rate_hz: float, seconds: float | None = No
 
 
 def _read_experiment(path: Path) -> tuple[np.ndarray, float]:
+    from ipmc_model.diagnosis.experiment import read_experiment
+
     try:
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise ExcitationError(f"{path} cannot be read as JSON: {exc}") from None
-    if not isinstance(doc, dict) or doc.get("format") != EXPERIMENT_FORMAT:
-        raise ExcitationError(f"{path} is not an experiment of ipmc diagnose (format "
-                              f"{EXPERIMENT_FORMAT!r})")
-    try:
-        u, rate_hz = np.asarray(doc["u_v"], dtype=float).reshape(-1), float(doc["rate_hz"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ExcitationError(f"{path} lacks a readable u_v list or rate_hz: {exc}") from None
+        _, u, rate_hz = read_experiment(path)
+    except ValueError as exc:
+        raise ExcitationError(str(exc)) from None
     if u.size < 2:
         raise ExcitationError(f"{path} holds fewer than 2 voltages")
     return u, rate_hz

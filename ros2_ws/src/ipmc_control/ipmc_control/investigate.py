@@ -258,7 +258,8 @@ def play_round(number: int, plan: PlannedInput, undecided: tuple[str, ...], runn
     t0 = time.monotonic()
     why = f" to decide {', '.join(undecided)}" if undecided else ""
     say(f"round {number}: playing {plan.label}{why} on {runner.describe()} (into {out_dir})")
-    rec = replace(runner.record(plan, out_dir), parts=plan.parts)
+    rec = runner.record(plan, out_dir)
+    rec = replace(rec, parts=placed_parts(plan, rec, say))
     records = [*(earlier or []), rec]
     say(f"round {number}: recorded {rec.u_v.size} samples ({rec.duration_s:.0f} s) in "
         f"{rec.path}; diagnosing")
@@ -270,6 +271,21 @@ def play_round(number: int, plan: PlannedInput, undecided: tuple[str, ...], runn
         f"{verdicts.rmse_before_mm:.4f} -> {verdicts.rmse_after_mm:.4f} mm "
         f"({rnd.wall_s:.0f} s)")
     return rnd
+
+
+def placed_parts(plan: PlannedInput, rec: Recorded, say: Progress
+                 ) -> tuple[ExperimentPart, ...]:
+    """The plan's parts where the record played them (a recorder that started first leaves
+    samples before them); none, so that every held-out row judges, if it did not play all."""
+    from ipmc_model.diagnosis.experiment import played_parts
+
+    if not plan.parts:
+        return ()
+    try:
+        return played_parts(plan.parts, plan.u_v, rec.u_v, 1.0 / plan.rate_hz)
+    except ValueError as exc:
+        say(f"  {exc}: every held-out row judges each effect")
+        return ()
 
 
 def investigate(runner: Runner, first: PlannedInput, diagnoser: Diagnoser, out_dir: Path, *,

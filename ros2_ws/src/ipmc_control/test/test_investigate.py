@@ -249,3 +249,25 @@ def test_the_diagnoser_takes_the_newest_record_or_every_record_together(tmp_path
         summary = json.loads((out / "summary.json").read_text())
         assert [r["name"] for r in summary["records"]] == names
         assert verdicts.rmse_before_mm == pytest.approx(summary["rmse_before_mm"])
+
+
+def test_the_parts_are_placed_where_the_record_played_them(tmp_path):
+    """A record that began before the experiment (a recorder started first) has its probes
+    where it played them; one that did not play all of it is judged on every held-out row."""
+    from ipmc_control.investigate import placed_parts
+    from ipmc_model.diagnosis.experiment import holds
+
+    u = np.concatenate([holds([1.0, -1.0], 2.0, RATE_HZ), holds([0.5, 0.0], 1.0, RATE_HZ)])
+    parts = (ExperimentPart("creep probe", "creep", 0.0, 4.0, "holds"),
+             ExperimentPart("delay probe", "delay", 4.0, 2.0, "steps"))
+    plan = PlannedInput(u, RATE_HZ, tmp_path / "x.json", "experiment", parts, ("creep",))
+    lead = np.zeros(int(1.5 * RATE_HZ))
+    t = np.arange(lead.size + u.size) / RATE_HZ
+    said: list[str] = []
+    rec = Recorded(t, np.r_[lead, u], t * 0.0, tmp_path / "r.csv")
+    placed = placed_parts(plan, rec, said.append)
+    assert [p.start_s for p in placed] == pytest.approx([1.5, 5.5])
+    assert said == []
+    short = Recorded(t[:100], u[:100], t[:100] * 0.0, tmp_path / "s.csv")
+    assert placed_parts(plan, short, said.append) == ()
+    assert len(said) == 1 and "shorter than the experiment" in said[0]

@@ -6,7 +6,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import time
 
 import numpy as np
 import pytest
@@ -208,6 +207,8 @@ WRITER_SCRIPT = textwrap.dedent("""
         w.write("/ipmc/displacement", ns, y)
         if k == 100:
             print("running", flush=True)
+        if k == 250:
+            print("written", flush=True)
         k += 1
         time.sleep(0.005)
 """)
@@ -221,7 +222,8 @@ def test_sigkill_mid_recording_then_recover_keeps_all_but_last_flush(tmp_path, s
     proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdout.readline().strip() == "running"
-        time.sleep(1.2)
+        # killed once 250 samples are written, however slowly the machine runs the loop
+        assert proc.stdout.readline().strip() == "written"
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=5)

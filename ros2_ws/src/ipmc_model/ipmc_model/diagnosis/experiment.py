@@ -140,17 +140,20 @@ def read_experiment(path) -> tuple[tuple[ExperimentPart, ...], np.ndarray, float
 
     try:
         doc = json.loads(Path(path).read_text())
-        if doc.get("format") != EXPERIMENT_FORMAT:
-            raise ValueError(f"{path} is not an {EXPERIMENT_FORMAT} file (its format is "
-                             f"{doc.get('format')!r})")
+    except OSError as exc:
+        raise ValueError(f"cannot read the experiment {path}: {exc.strerror}") from None
+    except ValueError as exc:
+        raise ValueError(f"{path} cannot be read as JSON: {exc}") from None
+    if not isinstance(doc, dict) or doc.get("format") != EXPERIMENT_FORMAT:
+        raise ValueError(f"{path} is not an experiment of ipmc diagnose (format "
+                         f"{EXPERIMENT_FORMAT!r})")
+    try:
         parts = tuple(ExperimentPart(str(p["name"]), str(p["effect"]), float(p["start_s"]),
                                      float(p["duration_s"]), str(p["reason"]))
                       for p in doc["parts"])
-        return parts, np.asarray(doc["u_v"], dtype=float), float(doc["rate_hz"])
-    except OSError as exc:
-        raise ValueError(f"cannot read the experiment {path}: {exc.strerror}") from None
-    except (json.JSONDecodeError, AttributeError, KeyError, TypeError) as exc:
-        raise ValueError(f"{path} is not a readable next_experiment.json ({exc!r})") from None
+        return parts, np.asarray(doc["u_v"], dtype=float).reshape(-1), float(doc["rate_hz"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{path} lacks readable parts, u_v or rate_hz: {exc!r}") from None
 
 
 def played_parts(parts, u_experiment_v: np.ndarray, u_record_v: np.ndarray, dt_s: float
