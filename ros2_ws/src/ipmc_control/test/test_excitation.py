@@ -150,6 +150,9 @@ def test_before_its_listeners_match_a_lockstep_excitation_holds_the_sample_unans
         monkeypatch.setattr(node, "_gate", type("Open", (), {"ready": lambda self: True})())
         node._answer_held()
         assert sent == ([first_v] if sim_time else [0.0])
+        if sim_time:   # started: the poll for a held sample stops
+            node._answer_held()
+            assert node._hold_timer.is_canceled() and sent == [first_v]
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)

@@ -87,12 +87,15 @@ class ExcitationNode(Node):
         self.create_subscription(PointStamped, "/ipmc/displacement", self._on_sample,
                                  SAMPLE_QOS)
         self._sim_time = bool(self.get_parameter("use_sim_time").value)
-        if self._sim_time:
-            self.create_timer(0.01, self._answer_held,
-                              clock=Clock(clock_type=ClockType.STEADY_TIME))
+        if self._sim_time:   # polls the gate for a held sample until the excitation starts
+            self._hold_timer = self.create_timer(0.01, self._answer_held,
+                                                 clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f"excitation: {self.excitation.describe()}")
 
     def _answer_held(self) -> None:
+        if self._k >= 0:
+            self._hold_timer.cancel()   # started: nothing is held any more
+            return
         if self._held is not None and self._gate.ready():
             held, self._held = self._held, None
             self._on_sample(held)
