@@ -8,7 +8,8 @@ procedure). When the diagnosis leaves an effect undecided for lack of the input 
 (creep without input holds, a delay without steps, a dead zone without slow crossings of 0 V),
 it proposes the experiment that decides it; the next round plays that experiment, records it
 and diagnoses it; and so on until nothing is undecided, an experiment left its effects as
-undecided as before, or the next experiment would overrun the budget of recorded minutes.
+undecided as before, the next experiment would decide only effects that an earlier record able
+to show them decided, or it would overrun the budget of recorded minutes.
 
 Each new record is diagnosed on its own, from the diagnosis's core model refitted on its fit
 part: the experiment repeats the probes in its held-out part after an identification input,
@@ -182,7 +183,11 @@ class Investigation:
 
     @property
     def undecided(self) -> tuple[str, ...]:
-        return self.rounds[-1].verdicts.undecided() if self.rounds else ()
+        """What the last round left undecided that no earlier record decided."""
+        if not self.rounds:
+            return ()
+        done = settled(self.rounds[:-1])
+        return tuple(n for n in self.rounds[-1].verdicts.undecided() if n not in done)
 
     @property
     def rmse_before_mm(self) -> float:
@@ -231,12 +236,26 @@ def experiment_input(experiment, out_dir: Path, after_round: int) -> PlannedInpu
 
 
 # -- the loop -------------------------------------------------------------------------------
+def settled(rounds) -> set[str]:
+    """Effects a round judged on a record that could show them (accepted or rejected) and
+    did not ask to probe again (an accepted creep whose time constant was left open does)."""
+    out = set()
+    for rnd in rounds:
+        asked = set(rnd.verdicts.undecided())
+        out |= {n for n, o in rnd.verdicts.outcomes.items()
+                if o in ("accepted", "rejected") and n not in asked}
+    return out
+
+
 def stop_reason(inv: Investigation, max_rounds: int) -> str | None:
     """Why no further round is played, or None if the next experiment is."""
     last = inv.rounds[-1]
     nxt = last.verdicts.next_experiment
     if nxt is None:
         return "nothing undecided: every candidate effect the records can show was judged"
+    if set(nxt.decides) <= settled(inv.rounds[:-1]):
+        return (f"nothing undecided: {', '.join(nxt.decides)}, which the last record could "
+                f"not show, was decided by an earlier record that could")
     if last.undecided and set(last.verdicts.undecided()) >= set(last.undecided):
         return (f"the experiment played to decide {', '.join(last.undecided)} left it "
                 "undecided: another such experiment would not decide it")

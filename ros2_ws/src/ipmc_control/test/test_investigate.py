@@ -137,6 +137,23 @@ def test_an_experiment_that_leaves_its_effect_undecided_is_not_repeated(tmp_path
     assert "left it undecided" in inv.stopped_because
 
 
+def test_an_experiment_for_effects_earlier_records_decided_is_not_played(tmp_path):
+    """The creep's experiment cannot show the dead zone round 1 accepted; its probe is not
+    worth another round."""
+    n = int(40 * RATE_HZ)
+    crossing = Experiment(RATE_HZ, 0.7, np.linspace(-0.5, 0.5, n),
+                          (ExperimentPart("dead_zone probe", "dead_zone", 0.0, 40.0, "slow"),))
+    runner = StandInRunner()
+    inv = investigate(runner, _first(tmp_path), stand_in_diagnoser([
+        ({"dead_zone": "accepted", "creep": "not testable"}, creep_experiment()),
+        ({"dead_zone": "not testable", "creep": "accepted"}, crossing)]), tmp_path,
+        budget_s=3600.0)
+    assert len(runner.played) == 2
+    assert inv.stopped_because.startswith("nothing undecided: dead_zone, which the last")
+    assert inv.undecided == ()
+    assert sorted(inv.effects_found) == ["creep", "dead_zone"]
+
+
 def test_ctrl_c_keeps_the_finished_rounds(tmp_path):
     inv = investigate(StandInRunner(interrupt_on=2), _first(tmp_path),
                       stand_in_diagnoser([UNDECIDED, DECIDED]), tmp_path, budget_s=600.0)
