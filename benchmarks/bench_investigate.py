@@ -51,7 +51,7 @@ class Case:
 
 CASES = {
     "creep": Case("creep", ("creep",), False, "tau 20 s, gain -0.12 mm/V"),
-    "delay": Case("delay", ("delay",), True, "delay 0.050 s"),
+    "delay": Case("delay", ("delay",), True, "delay 0.050 s (its line holds whole samples)"),
     "dead_zone": Case("dead_zone", ("dead_zone",), True, "width 0.300 V"),
     "clean": Case("clean", (), False, "no optional effect"),
 }
@@ -76,13 +76,43 @@ def describe_params(name: str, p: dict) -> str:
     if name == "creep":
         (lo, hi), (glo, ghi) = p["tau_ci_s"], p["gain_ci_mm_per_v"]
         return (f"creep tau {p['tau_s']:.1f} s (95 % {lo:.1f}-{hi:.1f}), gain "
-                f"{p['gain_mm_per_v']:.4f} mm/V (95 % {glo:.4f} to {ghi:.4f}); bank taus "
-                f"{p['taus_s']} s")
+                f"{p['gain_mm_per_v']:.4f} mm/V (95 % {glo:.4f} to {ghi:.4f}); the model's "
+                f"creep taus {[round(t, 1) for t in p['taus_s']]} s")
     if name == "delay":
-        return f"delay {p['delay_s']:.3f} s"
+        lo, hi = p["delay_ci_s"]
+        return f"delay {p['delay_s']:.3f} s (95 % {lo:.3f}-{hi:.3f})"
     if name == "dead_zone":
-        return f"dead zone {p['width_v']:.3f} V"
+        lo, hi = p["width_ci_v"]
+        return f"dead zone {p['width_v']:.3f} V (95 % {lo:.3f}-{hi:.3f})"
     return f"{name} " + ", ".join(f"{k} {v:.3g}" for k, v in p.items())
+
+
+#: Each case's parameters and the key of their 95 % interval in the diagnosis's evidence.
+INTERVAL_KEYS = {"creep": (("tau_s", "tau_ci_s"), ("gain_mm_per_v", "gain_ci_mm_per_v")),
+                 "delay": (("delay_s", "delay_ci_s"),),
+                 "dead_zone": (("width_v", "width_ci_v"),)}
+
+
+def plant_value(effect: str, key: str, rate_hz: float) -> float:
+    """The simulated plant's value of an effect's parameter, as it acts at ``rate_hz`` (its
+    delay line holds whole samples)."""
+    from ipmc_driver.plant import load_plant_params
+
+    value = load_plant_params()["effects"][effect][key]
+    return round(value * rate_hz) / rate_hz if key == "delay_s" else value
+
+
+def within_intervals(inv: Investigation, rate_hz: float) -> str:
+    """Whether each found effect's 95 % intervals hold the plant's values."""
+    out = []
+    for rnd in inv.rounds:
+        for name, p in rnd.verdicts.params.items():
+            for key, ci in INTERVAL_KEYS.get(name, ()):
+                true = plant_value(name, key, rate_hz)
+                lo, hi = p.get(ci, (float("nan"), float("nan")))
+                out.append(f"{key} {true:g} in [{lo:.4g}, {hi:.4g}]: "
+                           f"{'yes' if lo <= true <= hi else 'NO'}")
+    return "; ".join(out) or "-"
 
 
 def found_params(inv: Investigation) -> str:
@@ -129,6 +159,7 @@ def run_case(case: Case, rate_hz: float, seed: int, out: Path, together: bool = 
              f"undecided: {', '.join(inv.undecided) or 'nothing'}; stopped: "
              f"{inv.stopped_because}",
              f"  parameters found: {found_params(inv)}",
+             f"  plant's values within the 95 % intervals: {within_intervals(inv, rate_hz)}",
              f"  held-out RMSE before {inv.rmse_before_mm:.4f} mm, after "
              f"{inv.rmse_after_mm:.4f} mm, clean plant {clean:.4f} mm (after / clean "
              f"{inv.rmse_after_mm / clean:.2f}; found on the clean plant: "

@@ -48,6 +48,15 @@ class Fitted:
     scan: str = ""
 
 
+@dataclass(frozen=True)
+class Refined:
+    """An accepted effect's costlier estimate: its parameters with 95 % intervals (they
+    replace the round's) and, if it replaces the accepted model, the model they describe."""
+
+    params: dict
+    model: GeneralizedPI | None = None
+
+
 class Candidate:
     """One physical effect the model may lack."""
 
@@ -87,10 +96,11 @@ class Candidate:
     def fit(self, model: GeneralizedPI, rec: DiagnosisRecord, given: bool) -> Fitted | str:
         return self.around(model, rec) if given else self.refit(model, rec)
 
-    def refine(self, before: GeneralizedPI, rec: DiagnosisRecord, given: bool) -> dict:
-        """Parameters worth a costlier estimate once the effect is accepted around
-        ``before`` (they replace the round's); none by default."""
-        return {}
+    def refine(self, before: GeneralizedPI, after: GeneralizedPI, rec: DiagnosisRecord,
+               given: bool) -> Refined | None:
+        """A costlier estimate once the effect is accepted (``before``: the model without
+        it, ``after``: the accepted one); none by default."""
+        return None
 
 
 CANDIDATES: dict[str, Candidate] = {}
@@ -105,11 +115,17 @@ def register(cls: type[Candidate]) -> type[Candidate]:
 
 
 # -- shared fitting helpers -----------------------------------------------------------------
-def refit_with(model: GeneralizedPI, rec: DiagnosisRecord, **changes) -> GeneralizedPI:
-    """``model``'s hyperparameters with ``changes``, fitted on the fit rows as the model was
-    (its ridge weight chosen again by the blocked free-run CV)."""
-    m = GeneralizedPI(**{**model.get_params(), **changes})
-    return m.fit(rec.u_fit, rec.y_fit)
+def refit_with(model: GeneralizedPI, rec: DiagnosisRecord, start: dict, **changes
+               ) -> GeneralizedPI:
+    """``model``'s hyperparameters with ``changes``, fitted on the fit rows twice: from a
+    fresh start (its ridge weight chosen again by the blocked free-run CV), and warm from
+    ``model`` with the block added at ``start`` (:func:`warm_refit`; a block at zero
+    reproduces ``model``, so that fit can only descend from its error); the lower fit-rows
+    error is kept. Either alone fails somewhere: a fresh fit of a few dozen iterations can
+    stop above the model it extends, a warm one in the model's basin."""
+    fresh = GeneralizedPI(**{**model.get_params(), **changes}).fit(rec.u_fit, rec.y_fit)
+    warm = warm_refit(model, rec, **start)
+    return min((fresh, warm), key=lambda m: fit_sse(m, rec))
 
 
 #: Trust-region iterations of the quick fits that scan a block's parameter (the final fit at
@@ -302,7 +318,9 @@ class Creep(Candidate):
         taus = creep_taus(model, rec)
         if not taus:
             return "no creep time constant the fit part can identify"
-        m = refit_with(model, rec, output_taus_s=tuple(model.output_taus_s) + taus)
+        taus_s = tuple(model.output_taus_s) + taus
+        m = refit_with(model, rec, {"output_taus_s": taus_s, "output_coef_": np.append(
+            model.output_coef_, np.zeros(len(taus)))}, output_taus_s=taus_s)
         return Fitted(m, _creep_params(m, taus, rec))
 
     def around(self, model, rec):
@@ -317,70 +335,172 @@ class Creep(Candidate):
         return Fitted(m, {"taus_s": [est["tau_s"]], "gains_mm_per_v": [est["gain_mm_per_v"]],
                           **est})
 
-    def refine(self, before, rec, given):
+    def refine(self, before, after, rec, given):
         # the held-out rows have decided; the relaxation is then estimated on every row (the
         # held-out part's holds show it settling too). Around a given model that is a profile
-        # over tau with a linear gain; the own model moves with tau, so it is refitted.
+        # over tau with a linear gain; the own model moves with tau, so it is refitted. The
+        # bank of fixed time constants is the test's device (a refit without a search over
+        # tau); the creep the diagnosis reports is one relaxation, and the model after it is
+        # that relaxation at the estimated tau (three free gains would also take up the slow
+        # part of the model's misfit)
         if given:
-            return {**creep_estimate(before, rec.whole()), "interval": "whole record"}
-        return creep_profile(before, rec)
+            return Refined({**creep_estimate(before, rec.whole()), "interval": "whole record"})
+        params, single = creep_profile(before, rec)
+        return Refined({**params, "taus_s": [params["tau_s"]],
+                        "gains_mm_per_v": [float(single.output_coef_[-1])]}, single)
+
+
+def warm_refit(model: GeneralizedPI, rec: DiagnosisRecord, **attrs) -> GeneralizedPI:
+    """A copy of ``model`` with ``attrs`` set, fitted on the fit rows from ``model``'s
+    learned parameters (warm start, its ridge weight kept unless the blocked CV moves it).
+    It starts where ``model`` is, so it converges in a third of a fit's iterations; a short
+    fit from a fresh start stops several times above the converged error, and a profile
+    over a parameter would then measure how far each fit got."""
+    m = copy_with(model, **attrs)
+    m.warm_start, m.alphas, m.progress = True, (model.cv_.alpha,), None
+    m.fit(rec.u_fit, rec.y_fit)
+    m.warm_start, m.alphas, m.progress = model.warm_start, model.alphas, model.progress
+    return m
+
+
+def copy_with(model: GeneralizedPI, **attrs) -> GeneralizedPI:
+    """A copy of ``model`` with ``attrs`` set, the rest as learned."""
+    m = copy.deepcopy(model)
+    for name, value in attrs.items():
+        setattr(m, name, value)
+    return m
 
 
 def with_relaxation(model: GeneralizedPI, rec: DiagnosisRecord, tau_s: float
                     ) -> GeneralizedPI:
-    """``model`` with one more output relaxation (``tau_s``), fitted on the fit rows from
-    ``model``'s learned parameters (warm start, its ridge weight kept, the new gain from
-    zero). The fit starts where ``model`` is, so it converges in a third of a fit's
-    iterations; a short fit from a fresh start stops several times above the converged
-    error, and a profile over tau would then measure how far each fit got."""
-    m = copy.deepcopy(model)
-    m.output_taus_s = (*model.output_taus_s, float(tau_s))
-    m.output_coef_ = np.append(model.output_coef_, 0.0)
-    m.warm_start, m.alphas, m.progress = True, (model.cv_.alpha,), None
-    return m.fit(rec.u_fit, rec.y_fit)
+    """``model`` with one more output relaxation (``tau_s``, its gain from zero), warm
+    refitted (:func:`warm_refit`)."""
+    return warm_refit(model, rec, output_taus_s=(*model.output_taus_s, float(tau_s)),
+                      output_coef_=np.append(model.output_coef_, 0.0))
 
 
-def creep_profile(before: GeneralizedPI, rec: DiagnosisRecord, n_taus: int = 9) -> dict:
-    """tau_s of one creep relaxation added to ``before`` and refitted with it (warm refits
-    from ``before``, :func:`with_relaxation`, on a log grid of tau), with the
-    profile-likelihood 95 % interval: the fit rows' sum of squares within chi2(1) 0.95 of its
-    minimum at the residual's effective sample size. The whole model moves with tau here, so
-    the interval carries what the other parameters can take up of a relaxation (an end at the
-    grid's edge: open there)."""
+@dataclass(frozen=True)
+class Profile:
+    """Fits of a model over a grid ``x`` of one parameter (on the scale its interval is
+    interpolated on), their fit rows' free-run sums of squares, and the best fit's
+    residual in effective samples (:func:`effective_samples`)."""
+
+    x: np.ndarray
+    fits: list
+    sse: np.ndarray
+    n_eff: float
+    #: The parameter's finest step: a value between two grid points at this step shows as
+    #: the nearer one, so no interval is narrower than a step about the best point.
+    resolution: float = 0.0
+
+    @classmethod
+    def of(cls, x, fits: list, rec: DiagnosisRecord, resolution: float = 0.0) -> Profile:
+        sse = np.array([fit_sse(m, rec) for m in fits])
+        best = fits[int(np.argmin(sse))]
+        n_eff = effective_samples((best.simulate(rec.u_fit) - rec.y_fit)[rec.fit_obs])
+        return cls(np.asarray(x, float), list(fits), sse, n_eff, resolution)
+
+    @classmethod
+    def traced(cls, x, fit_at, rec: DiagnosisRecord, resolution: float) -> Profile:
+        """The profile of ``fit_at(value)`` over the grid ``x``; when the interval lies within
+        the best point's neighbours (a grid too coarse to trace it), traced again with points
+        between them, on multiples of ``resolution`` (the finest step the parameter has)."""
+        x = np.asarray(x, float)
+        prof = cls.of(x, [fit_at(float(v)) for v in x], rec, resolution)
+        k = int(np.argmin(prof.sse))
+        if not prof._within_neighbours(k):
+            return prof
+        fine = np.round(np.linspace(x[k - 1], x[k + 1], 2 * PROFILE_HALF_POINTS + 1)
+                        / resolution) * resolution
+        fine = np.setdiff1d(fine, x)
+        if fine.size == 0:
+            return prof
+        merged = np.r_[x, fine]
+        order = np.argsort(merged)
+        fits = prof.fits + [fit_at(float(v)) for v in fine]
+        return cls.of(merged[order], [fits[i] for i in order], rec, resolution)
+
+    @property
+    def best(self) -> GeneralizedPI:
+        return self.fits[int(np.argmin(self.sse))]
+
+    def _excess(self) -> tuple[np.ndarray, np.ndarray]:
+        """n_eff ln(SSE / SSE_min) at each point, and its excess over chi2(1)'s 0.95."""
+        dev = self.n_eff * np.log(self.sse / self.sse.min())
+        return dev, dev - chi2.ppf(0.95, 1)
+
+    def _within_neighbours(self, k: int) -> bool:
+        excess = self._excess()[1]
+        return 0 < k < self.x.size - 1 and min(excess[k - 1], excess[k + 1]) > 0
+
+    def interval(self) -> tuple[float, tuple[float, float], tuple[bool, bool]]:
+        """The parameter's estimate and profile-likelihood 95 % interval: where the sum of
+        squares stays within chi2(1) 0.95 of its minimum, n_eff ln(SSE / SSE_min) (the
+        other parameters refitted at each point carry what they can take up), and at least
+        half a ``resolution`` either side of the best point; ends cut by the grid's edge,
+        not the data, are open."""
+        centre, (lo, hi), open_ends = self._interval()
+        best, half = float(self.x[int(np.argmin(self.sse))]), self.resolution / 2.0
+        return centre, (min(lo, best - half), max(hi, best + half)), open_ends
+
+    def _interval(self) -> tuple[float, tuple[float, float], tuple[bool, bool]]:
+        x, n = self.x, self.x.size
+        k = int(np.argmin(self.sse))
+        dev, excess = self._excess()
+        if self._within_neighbours(k):
+            # the interval lies within the neighbours: the parabola through the three points
+            a, b, c = dev[k - 1:k + 2]
+            h_l, h_r = x[k] - x[k - 1], x[k + 1] - x[k]
+            slope_l, slope_r = (b - a) / h_l, (c - b) / h_r
+            curv = 2.0 * (slope_r - slope_l) / (h_l + h_r)
+            centre = float(x[k] - (slope_l * h_r + slope_r * h_l) / (h_l + h_r) / curv)
+            half = math.sqrt(2.0 * chi2.ppf(0.95, 1) / curv)
+            return centre, (centre - half, centre + half), (False, False)
+        ends, open_ends = [], []
+        for side in (range(k, -1, -1), range(k, n)):   # an end at the grid's edge: open
+            idx = list(side)
+            end, crossed = float(x[idx[-1]]), False
+            for i, j in zip(idx, idx[1:], strict=False):
+                if excess[j] > 0:   # crossed between the two: interpolate
+                    end = float(x[i] + (x[j] - x[i]) * -excess[i] / (excess[j] - excess[i]))
+                    crossed = True
+                    break
+            ends.append(end)
+            open_ends.append(not crossed)
+        return float(x[k]), (ends[0], ends[1]), (open_ends[0], open_ends[1])
+
+
+def better_fit(model: GeneralizedPI, than: GeneralizedPI, rec: DiagnosisRecord
+               ) -> GeneralizedPI | None:
+    """``model`` (of ``than``'s structure, another value of one parameter) if it fits the fit
+    rows better than ``than``, else None."""
+    return model if fit_sse(model, rec) < fit_sse(than, rec) else None
+
+
+#: The creep profile's finest step in ln tau (1 %: far inside any interval a record gives).
+CREEP_LOG_TAU_RESOLUTION = 0.01
+
+
+def creep_profile(before: GeneralizedPI, rec: DiagnosisRecord, n_taus: int = 9
+                  ) -> tuple[dict, GeneralizedPI]:
+    """One creep relaxation added to ``before`` and refitted with it (warm refits,
+    :func:`with_relaxation`) on a log grid of tau: tau and its gain with 95 % intervals
+    (:meth:`Profile.interval`), and the model refitted at the estimated tau."""
     lo, hi = rec.config.creep_min_tau_s / 3.0, rec.excitation.fit_span_s / MIN_SPANS_PER_TAU
-    grid = np.geomspace(lo, hi, n_taus)
-    u, y, obs = rec.u_fit, rec.y_fit, rec.fit_obs
-    fits = [with_relaxation(before, rec, float(t)) for t in grid]
-    sse = np.array([m.train_rmse_ ** 2 * obs.sum() for m in fits])
-    k = int(np.argmin(sse))
-    n_eff = effective_samples((fits[k].simulate(u) - y)[obs])
+    prof = Profile.traced(np.linspace(math.log(lo), math.log(hi), n_taus),
+                          lambda lt: with_relaxation(before, rec, math.exp(lt)), rec,
+                          CREEP_LOG_TAU_RESOLUTION)
+    grid = np.exp(prof.x)
+    u, obs = rec.u_fit, rec.fit_obs
     # the gain's Wald half-width at each tau: its channel's energy against the residual
     # variance per effective sample
     energy = np.array([np.sum(lowpass_bank(m._charge(u, m._theta), (t,), rec.dt_s)[0][obs] ** 2)
-                       for m, t in zip(fits, grid, strict=True)])
-    halves = 1.96 * np.sqrt(sse / n_eff / energy)
-    x, step = np.log(grid), float(np.log(grid[1] / grid[0]))
-    excess = n_eff * np.log(sse / sse.min()) - chi2.ppf(0.95, 1)
-    if 0 < k < n_taus - 1 and min(excess[k - 1], excess[k + 1]) > 0:
-        # the interval lies within the neighbours: the parabola through the three points
-        a, b, c = n_eff * np.log(sse[k - 1:k + 2] / sse.min())
-        curv = (a - 2 * b + c) / step ** 2
-        centre = x[k] + 0.5 * step * (a - c) / (a - 2 * b + c)
-        half = math.sqrt(chi2.ppf(0.95, 1) / (0.5 * curv))
-        return _tau_and_gain(x, fits, halves, centre, (centre - half, centre + half),
-                             (False, False))
-    ends, open_ends = [], []
-    for side in (range(k, -1, -1), range(k, n_taus)):   # an end at the grid's edge: open
-        idx = list(side)
-        end, crossed = float(x[idx[-1]]), False
-        for i, j in zip(idx, idx[1:], strict=False):
-            if excess[j] > 0:   # crossed between the two: interpolate in log tau
-                end = float(x[i] + (x[j] - x[i]) * -excess[i] / (excess[j] - excess[i]))
-                crossed = True
-                break
-        ends.append(end)
-        open_ends.append(not crossed)
-    return _tau_and_gain(x, fits, halves, float(x[k]), tuple(ends), tuple(open_ends))
+                       for m, t in zip(prof.fits, grid, strict=True)])
+    halves = 1.96 * np.sqrt(prof.sse / prof.n_eff / energy)
+    centre, ends, open_ends = prof.interval()
+    params = _tau_and_gain(prof.x, prof.fits, halves, centre, ends, open_ends)
+    at_centre = with_relaxation(before, rec, params["tau_s"])
+    return params, min((at_centre, prof.best), key=lambda m: fit_sse(m, rec))
 
 
 def _tau_and_gain(log_grid: np.ndarray, fits: list, halves: np.ndarray, centre: float,
@@ -492,7 +612,9 @@ class Drift(Candidate):
                "temperature)")
 
     def refit(self, model, rec):
-        m = refit_with(model, rec, drift=True)  # the two rates fitted jointly with the rest
+        # the two rates fitted jointly with the rest
+        m = refit_with(model, rec, {"drift": True, "drift_gain_per_s_": 0.0,
+                                    "drift_offset_mm_per_s_": 0.0}, drift=True)
         return Fitted(m, _drift_params(m))
 
     def around(self, model, rec):
@@ -527,8 +649,24 @@ class Delay(Candidate):
                            int(round(c.max_delay_s / rec.dt_s)))
         lo, hi = model.delay_samples_ + MIN_DELAY_SAMPLES, int(round(c.max_delay_s / rec.dt_s))
         d, scan = descend_delay(model, rec, max(d, lo), lo, hi)
-        m = refit_with(model, rec, delay_s=d * rec.dt_s)
+        m = refit_with(model, rec, {"delay_samples_": d, "delay_s": d * rec.dt_s},
+                       delay_s=d * rec.dt_s)
         return Fitted(m, {"delay_s": d * rec.dt_s}, scan)
+
+    def refine(self, before, after, rec, given):
+        # the profile over whole samples around the accepted delay, each refitted (own
+        # model) or the frozen rest kept (given): the delay's 95 % interval in seconds
+        d, dt = int(after.delay_samples_), rec.dt_s
+        step = max(1, d // (2 * PROFILE_HALF_POINTS))
+        grid = np.arange(max(int(before.delay_samples_), d - PROFILE_HALF_POINTS * step),
+                         d + PROFILE_HALF_POINTS * step + 1, step)
+        prof = Profile.traced(grid * dt, lambda v: at_values(
+            after, rec, given, delay_samples_=int(round(v / dt)), delay_s=v), rec, dt)
+        _, ends, open_ends = prof.interval()
+        kept = better_fit(prof.best, after, rec)
+        return Refined({"delay_s": float((kept or after).delay_samples_ * dt),
+                        "delay_ci_s": [max(ends[0], 0.0), ends[1]],
+                        "delay_ci_open": list(open_ends)}, kept)
 
     def around(self, model, rec):
         best, best_sse = 0, fit_sse(model, rec)
@@ -546,6 +684,17 @@ class Delay(Candidate):
                       f"free-run scan: {best} samples added")
 
 
+def at_values(model: GeneralizedPI, rec: DiagnosisRecord, frozen: bool, **attrs
+              ) -> GeneralizedPI:
+    """``model`` with ``attrs`` set: the rest frozen (a given model), or warm refitted (the
+    own model, :func:`warm_refit`)."""
+    return copy_with(model, **attrs) if frozen else warm_refit(model, rec, **attrs)
+
+
+#: Grid points of a parameter's profile on each side of its estimate.
+PROFILE_HALF_POINTS = 4
+
+
 #: Resolution of the dead zone's scan (V): below the sensor's reach at IPMC gains (~1 mm/V).
 DEAD_ZONE_TOL_V = 0.01
 
@@ -556,12 +705,15 @@ class DeadZone(Candidate):
     meaning = "voltages below a threshold move no ions (a contact or electrode threshold)"
 
     def not_testable(self, rec, model, given):
-        c, share = rec.config, rec.excitation.near_zero_share
-        if share >= c.dead_zone_min_share:
+        # both parts: the fit rows set the width, the judged rows must show it to decide
+        c, ex = rec.config, rec.excitation
+        if min(ex.near_zero_share, ex.near_zero_held_share) >= c.dead_zone_min_share:
             return None
-        return (f"{100 * share:.1f} % of the fit part within +-{c.dead_zone_max_v:g} V: a "
-                f"dead zone shows in slow crossings of 0 V; record small, slow ones "
-                f"(at least {100 * c.dead_zone_min_share:.0f} % of the time)")
+        return (f"{100 * ex.near_zero_share:.1f} % of the fit part and "
+                f"{100 * ex.near_zero_held_share:.1f} % of the judged held-out rows within "
+                f"+-{c.dead_zone_max_v:g} V: a dead zone shows in slow crossings of 0 V; "
+                f"record small, slow ones in both parts (at least "
+                f"{100 * c.dead_zone_min_share:.0f} % of the time)")
 
     def probe(self, rec, model, result):
         a = min(rec.config.dead_zone_max_v, probe_level_v(rec))
@@ -576,9 +728,24 @@ class DeadZone(Candidate):
                               bounds=(model.dead_zone_v, model.dead_zone_v + hi),
                               method="bounded", options={"xatol": DEAD_ZONE_TOL_V})
         w = float(res.x)
-        m = refit_with(model, rec, dead_zone_v=w)
+        m = refit_with(model, rec, {"dead_zone_v": w}, dead_zone_v=w)
         return Fitted(m, {"width_v": w}, f"bounded scan of quick refits: {w:.3f} V "
                                          f"({res.nfev} refits)")
+
+    def refine(self, before, after, rec, given):
+        # the profile over widths around the accepted one, within the scan's bounds
+        lo = before.dead_zone_v
+        hi = lo + rec.config.dead_zone_max_v
+        step = rec.config.dead_zone_max_v / (2 * PROFILE_HALF_POINTS)
+        grid = np.unique(np.clip(after.dead_zone_v + step * np.arange(
+            -PROFILE_HALF_POINTS, PROFILE_HALF_POINTS + 1), lo, hi))
+        prof = Profile.traced(grid, lambda w: at_values(after, rec, given, dead_zone_v=w),
+                              rec, DEAD_ZONE_TOL_V)
+        _, ends, open_ends = prof.interval()
+        kept = better_fit(prof.best, after, rec)
+        return Refined({"width_v": float((kept or after).dead_zone_v),
+                        "width_ci_v": [max(ends[0], 0.0), ends[1]],
+                        "width_ci_open": list(open_ends)}, kept)
 
     def around(self, model, rec):
         m, w = scalar_around(model, rec, "dead_zone_v", model.dead_zone_v,

@@ -40,6 +40,7 @@ class Excitation:
     holds_held: int
     steps_fit: int
     near_zero_share: float
+    near_zero_held_share: float
     u_min_v: float
     u_max_v: float
     noise_floor_mm: float
@@ -186,6 +187,8 @@ class DiagnosisRecord:
             fit_span_s=max(s.cut - s.start for s in self.segments) * dt,
             holds_fit=holds_fit, holds_held=holds_held, steps_fit=steps,
             near_zero_share=float(np.mean(np.abs(fit_u) < c.dead_zone_max_v)),
+            near_zero_held_share=float(np.mean(
+                np.abs(u[self.judged_for("dead_zone")]) < c.dead_zone_max_v)),
             u_min_v=float(u[measured].min()), u_max_v=float(u[measured].max()),
             noise_floor_mm=noise_floor(self.y_mm[measured]),
             judged_share=float(self.judged.sum() / max(1, self.held_rows.sum())))

@@ -235,10 +235,11 @@ def diagnose_records(records, *, model=None, config: DiagnosisConfig | None = No
         if fitted is None:
             break
         say(f"round {number}: accepted {rnd.accepted}")
-        refined = CANDIDATES[rnd.accepted].refine(current, rec, given)
-        if refined:
-            d.rounds[-1] = _with_params(rnd, refined)
+        refined = CANDIDATES[rnd.accepted].refine(current, fitted.model, rec, given)
         current = fitted.model
+        if refined is not None:
+            d.rounds[-1] = _with_params(rnd, refined.params)
+            current = refined.model or current
         names.remove(rnd.accepted)
     d.model_after = current
     d.next_experiment = design_experiment(d, rec)
