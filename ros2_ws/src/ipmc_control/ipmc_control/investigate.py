@@ -186,7 +186,7 @@ class Investigation:
         """What the last round left undecided that no earlier record decided."""
         if not self.rounds:
             return ()
-        done = settled(self.rounds[:-1])
+        done = settled_before(self.rounds)
         return tuple(n for n in self.rounds[-1].verdicts.undecided() if n not in done)
 
     @property
@@ -247,13 +247,19 @@ def settled(rounds) -> set[str]:
     return out
 
 
+def settled_before(rounds) -> set[str]:
+    """Effects the last round could not test that an earlier round settled."""
+    last = rounds[-1].verdicts.outcomes
+    return settled(rounds[:-1]) & {n for n, o in last.items() if o == "not testable"}
+
+
 def stop_reason(inv: Investigation, max_rounds: int) -> str | None:
     """Why no further round is played, or None if the next experiment is."""
     last = inv.rounds[-1]
     nxt = last.verdicts.next_experiment
     if nxt is None:
         return "nothing undecided: every candidate effect the records can show was judged"
-    if set(nxt.decides) <= settled(inv.rounds[:-1]):
+    if set(nxt.decides) <= settled_before(inv.rounds):
         return (f"nothing undecided: {', '.join(nxt.decides)}, which the last record could "
                 f"not show, was decided by an earlier record that could")
     if last.undecided and set(last.verdicts.undecided()) >= set(last.undecided):

@@ -154,6 +154,19 @@ def test_an_experiment_for_effects_earlier_records_decided_is_not_played(tmp_pat
     assert sorted(inv.effects_found) == ["creep", "dead_zone"]
 
 
+def test_an_effect_the_last_record_judged_and_asks_to_pin_down_goes_on(tmp_path):
+    """Rejected on round 1's record, accepted on round 2's with its time constant left open:
+    the holds that pin it down are played, whatever round 1 said."""
+    steps = Experiment(RATE_HZ, 0.7, np.repeat([1.0, -1.0] * 10, int(2 * RATE_HZ)),
+                       (ExperimentPart("delay probe", "delay", 0.0, 40.0, "steps"),))
+    runner = StandInRunner()
+    inv = investigate(runner, _first(tmp_path), stand_in_diagnoser([
+        ({"creep": "rejected", "delay": "not testable"}, steps),
+        ({"creep": "accepted", "delay": "accepted"}, creep_experiment(200.0)),
+        ({"creep": "accepted", "delay": "not testable"}, None)]), tmp_path, budget_s=3600.0)
+    assert len(runner.played) == 3 and inv.effects_found == ["creep", "delay"]
+
+
 def test_ctrl_c_keeps_the_finished_rounds(tmp_path):
     inv = investigate(StandInRunner(interrupt_on=2), _first(tmp_path),
                       stand_in_diagnoser([UNDECIDED, DECIDED]), tmp_path, budget_s=600.0)

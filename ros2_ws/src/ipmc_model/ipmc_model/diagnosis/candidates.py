@@ -346,18 +346,18 @@ class Creep(Candidate):
         if given:
             return Refined({**creep_estimate(before, rec.whole()), "interval": "whole record"})
         params, single = creep_profile(before, rec)
-        return Refined({**params, "taus_s": [params["tau_s"]],
+        return Refined({**params, "taus_s": [float(single.output_taus_s[-1])],
                         "gains_mm_per_v": [float(single.output_coef_[-1])]}, single)
 
 
 def warm_refit(model: GeneralizedPI, rec: DiagnosisRecord, **attrs) -> GeneralizedPI:
     """A copy of ``model`` with ``attrs`` set, fitted on the fit rows from ``model``'s
-    learned parameters (warm start, its ridge weight kept unless the blocked CV moves it).
+    learned parameters (warm start, its ridge weight kept).
     It starts where ``model`` is, so it converges in a third of a fit's iterations; a short
     fit from a fresh start stops several times above the converged error, and a profile
     over a parameter would then measure how far each fit got."""
     m = copy_with(model, **attrs)
-    m.warm_start, m.alphas, m.progress = True, (model.cv_.alpha,), None
+    m.warm_start, m.alphas, m.progress = True, (model.cv_.alpha,), None   # the ridge weight kept
     m.fit(rec.u_fit, rec.y_fit)
     m.warm_start, m.alphas, m.progress = model.warm_start, model.alphas, model.progress
     return m
@@ -410,9 +410,11 @@ class Profile:
         k = int(np.argmin(prof.sse))
         if not prof._within_neighbours(k):
             return prof
-        fine = np.round(np.linspace(x[k - 1], x[k + 1], 2 * PROFILE_HALF_POINTS + 1)
-                        / resolution) * resolution
-        fine = np.setdiff1d(fine, x)
+        fine = np.unique(np.round(np.linspace(x[k - 1], x[k + 1], 2 * PROFILE_HALF_POINTS + 1)
+                                  / resolution) * resolution)
+        # new points only, within the grid's range: a near twin of a point is a refit's noise
+        fine = fine[(np.min(np.abs(fine[:, None] - x), axis=1) > resolution / 2)
+                    & (fine >= x[0]) & (fine <= x[-1])]
         if fine.size == 0:
             return prof
         merged = np.r_[x, fine]
@@ -658,12 +660,16 @@ class Delay(Candidate):
         # model) or the frozen rest kept (given): the delay's 95 % interval in seconds
         d, dt = int(after.delay_samples_), rec.dt_s
         step = max(1, d // (2 * PROFILE_HALF_POINTS))
+        top = int(before.delay_samples_) + int(round(rec.config.max_delay_s / dt))
         grid = np.arange(max(int(before.delay_samples_), d - PROFILE_HALF_POINTS * step),
-                         d + PROFILE_HALF_POINTS * step + 1, step)
+                         min(d + PROFILE_HALF_POINTS * step, top) + 1, step)
         prof = Profile.traced(grid * dt, lambda v: at_values(
             after, rec, given, delay_samples_=int(round(v / dt)), delay_s=v), rec, dt)
         _, ends, open_ends = prof.interval()
-        kept = better_fit(prof.best, after, rec)
+        # the accepted block stays: a best point without the added delay is not kept
+        best = prof.best
+        kept = (better_fit(best, after, rec) if best.delay_samples_ >= int(
+            before.delay_samples_) + MIN_DELAY_SAMPLES else None)
         return Refined({"delay_s": float((kept or after).delay_samples_ * dt),
                         "delay_ci_s": [max(ends[0], 0.0), ends[1]],
                         "delay_ci_open": list(open_ends)}, kept)
@@ -705,7 +711,8 @@ class DeadZone(Candidate):
     meaning = "voltages below a threshold move no ions (a contact or electrode threshold)"
 
     def not_testable(self, rec, model, given):
-        # both parts: the fit rows set the width, the judged rows must show it to decide
+        # both parts: the fit rows set the width, and the judged rows decide only if they
+        # dwell near 0 V too
         c, ex = rec.config, rec.excitation
         if min(ex.near_zero_share, ex.near_zero_held_share) >= c.dead_zone_min_share:
             return None
@@ -742,7 +749,8 @@ class DeadZone(Candidate):
         prof = Profile.traced(grid, lambda w: at_values(after, rec, given, dead_zone_v=w),
                               rec, DEAD_ZONE_TOL_V)
         _, ends, open_ends = prof.interval()
-        kept = better_fit(prof.best, after, rec)
+        best = prof.best   # the accepted block stays: a best point without it is not kept
+        kept = better_fit(best, after, rec) if best.dead_zone_v > lo else None
         return Refined({"width_v": float((kept or after).dead_zone_v),
                         "width_ci_v": [max(ends[0], 0.0), ends[1]],
                         "width_ci_open": list(open_ends)}, kept)
