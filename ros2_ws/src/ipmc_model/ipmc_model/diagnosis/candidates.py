@@ -501,6 +501,8 @@ def creep_profile(before: GeneralizedPI, rec: DiagnosisRecord, n_taus: int = 9
     halves = 1.96 * np.sqrt(prof.sse / prof.n_eff / energy)
     centre, ends, open_ends = prof.interval()
     params = _tau_and_gain(prof.x, prof.fits, halves, centre, ends, open_ends)
+    if np.isclose(centre, prof.x).any():   # the estimate is a grid point: its fit is there
+        return params, prof.best
     at_centre = with_relaxation(before, rec, params["tau_s"])
     return params, min((at_centre, prof.best), key=lambda m: fit_sse(m, rec))
 
