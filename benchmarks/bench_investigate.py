@@ -3,7 +3,11 @@ found, their parameters beside the plant's, the held-out error before and after 
 clean plant's, the simulated and wall time, and each proposed experiment's length beside what
 it decides. Prints figures; not part of the pass/fail suite.
 
-    .venv/bin/python benchmarks/bench_investigate.py [--case creep ...] [--rate-hz 50]
+    .venv/bin/python benchmarks/bench_investigate.py [--case creep ...] [--rate-hz 50] [--graph]
+
+``--graph`` runs each round through the lock-step ROS graph (``ipmc bringup --sim --lockstep
+--experiment FILE --record BAG``, 100 Hz), as ``ipmc investigate --sim`` does; the default is
+the same simulated IPMC in this process, several times faster.
 
 Cases: a creep (tau 20 s) under a random sine (no holds); a transport delay (0.05 s) and a
 dead zone (0.3 V) under a smooth random sine (band 0.02-0.3 Hz: few fast components, no steps,
@@ -27,6 +31,7 @@ from pathlib import Path
 from threadpoolctl import threadpool_limits
 
 from ipmc_control.investigate import (
+    GraphRunner,
     InProcessRunner,
     Investigation,
     PlannedInput,
@@ -138,10 +143,12 @@ def clean_twin(inv: Investigation, rate_hz: float, seed: int, together: bool
     return d.rmse_after_mm, d.effects_found
 
 
-def run_case(case: Case, rate_hz: float, seed: int, out: Path, together: bool = False
-             ) -> list[str]:
-    """Investigate one case; the lines that report it."""
-    runner = InProcessRunner(list(case.effects), seed=seed, rate_hz=rate_hz)
+def run_case(case: Case, rate_hz: float, seed: int, out: Path, together: bool = False,
+             graph: bool = False) -> list[str]:
+    """Investigate one case (in process, or through the lock-step graph at its rate); the
+    lines that report it."""
+    runner = (GraphRunner(effects=list(case.effects)) if graph else
+              InProcessRunner(list(case.effects), seed=seed, rate_hz=rate_hz))
     first = (smooth_input(rate_hz, seed, out / "round_1") if case.smooth else
              first_input("random-sine", seconds=SECONDS, rate_hz=rate_hz, amplitude_v=3.0,
                          seed=seed, out_dir=out / "round_1"))
@@ -154,7 +161,8 @@ def run_case(case: Case, rate_hz: float, seed: int, out: Path, together: bool = 
     write_investigation(inv, out)
     clean, clean_found = clean_twin(inv, rate_hz, seed, together)
     lines = [f"{case.name}: plant {case.plant}; first input "
-             f"{'smooth random sine' if case.smooth else 'random sine'} {SECONDS:g} s",
+             f"{'smooth random sine' if case.smooth else 'random sine'} {SECONDS:g} s; "
+             f"{runner.describe()}",
              f"  effects found: {', '.join(inv.effects_found) or 'none'}; "
              f"undecided: {', '.join(inv.undecided) or 'nothing'}; stopped: "
              f"{inv.stopped_because}",
@@ -188,12 +196,17 @@ def main() -> int:
     p.add_argument("--together", action="store_true",
                    help="each round diagnoses every record so far at once (ipmc diagnose "
                         "--data A --data B), not the newest record alone")
+    p.add_argument("--graph", action="store_true",
+                   help="through the lock-step ROS graph at its rate (as ipmc investigate "
+                        "--sim), not the simulated IPMC in this process")
     args = p.parse_args()
+    if args.graph:
+        args.rate_hz = GraphRunner.rate_hz
     t0 = time.perf_counter()
     with threadpool_limits(1), tempfile.TemporaryDirectory() as tmp:
         for name in args.case or list(CASES):
             for line in run_case(CASES[name], args.rate_hz, args.seed, Path(tmp) / name,
-                                 args.together):
+                                 args.together, args.graph):
                 print(line, flush=True)
     print(f"total wall time {time.perf_counter() - t0:.0f} s at {args.rate_hz:g} Hz, seed "
           f"{args.seed}")

@@ -93,6 +93,30 @@ def test_a_clean_record_has_nothing_and_a_dead_zone_is_found_with_its_width():
     assert dz.rmse_after_mm < 2.0 * clean.rmse_after_mm
 
 
+def test_the_model_a_round_starts_from_is_converged_on_the_fit_rows():
+    # a fit stopped after 3 iterations is far from its optimum; converged() refits it warm
+    # until another refit gains less than chi2(1)'s median in the fit rows' likelihood ratio
+    from ipmc_model.diagnosis.candidates import (
+        CONVERGED_LR,
+        converged,
+        effective_samples,
+        fit_sse,
+        warm_refit,
+    )
+    from ipmc_model.hysteresis import GeneralizedPI
+
+    r = plant_record({}, 120.0, 3, holds=True)
+    rec = DiagnosisRecord(r.t_s, r.u_v, r.y_mm, DiagnosisConfig())
+    short = GeneralizedPI(memory_taus_s=(0.05, 0.15, 0.5), delay_s=0.0, dt_s=1 / RATE,
+                          direction_memory_v=(), max_nfev=3, start_tau_factors=(1.0,)
+                          ).fit(rec.u_fit, rec.y_fit)
+    done = converged(short, rec)
+    assert fit_sse(done, rec) < 0.8 * fit_sse(short, rec)
+    e = (done.simulate(rec.u_fit) - rec.y_fit)[rec.fit_obs]
+    again = fit_sse(warm_refit(done, rec), rec)
+    assert effective_samples(e) * np.log(fit_sse(done, rec) / again) < 2 * CONVERGED_LR
+
+
 def test_a_profile_interval_is_where_the_deviance_stays_within_chi2():
     """A deviance n_eff ln(SSE / SSE_min) = ((x - c) / s)^2 has the 95 % interval
     c -+ 1.96 s: interpolated on a grid that traces it, from the parabola when it lies

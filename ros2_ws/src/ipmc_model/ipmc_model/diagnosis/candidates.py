@@ -363,6 +363,32 @@ def warm_refit(model: GeneralizedPI, rec: DiagnosisRecord, **attrs) -> Generaliz
     return m
 
 
+#: A further refit that raises the fit rows' likelihood ratio by less than chi2(1)'s median
+#: leaves the model converged: a one-parameter block needs chi2(1) at 0.95 (3.84), so what
+#: iterating could still gain is too small to pass for a block.
+CONVERGED_LR = float(chi2.ppf(0.5, 1))
+#: Warm refits tried at most (each a third of a fit's iterations).
+MAX_POLISH = 6
+
+
+def converged(model: GeneralizedPI, rec: DiagnosisRecord) -> GeneralizedPI:
+    """``model`` warm refitted until a refit gains less than :data:`CONVERGED_LR` on the fit
+    rows. A short fit stops short of its optimum, and a candidate refitted from it would win
+    the remainder as if its block had explained it."""
+    sse = fit_sse(model, rec)
+    for _ in range(MAX_POLISH):
+        r = (model.simulate(rec.u_fit) - rec.y_fit)[rec.fit_obs]
+        nxt = warm_refit(model, rec)
+        new = fit_sse(nxt, rec)
+        if not new < sse:
+            break
+        lr = effective_samples(r) * math.log(sse / new)
+        model, sse = nxt, new
+        if lr < CONVERGED_LR:
+            break
+    return model
+
+
 def copy_with(model: GeneralizedPI, **attrs) -> GeneralizedPI:
     """A copy of ``model`` with ``attrs`` set, the rest as learned."""
     m = copy.deepcopy(model)

@@ -15,32 +15,35 @@ import numpy as np
 from scipy.stats import chi2
 
 from ..hysteresis import DEFAULT_MEMORY_TAUS_S, GeneralizedPI
-from .candidates import CANDIDATES, Fitted, effective_samples, fit_sse
+from .candidates import CANDIDATES, Fitted, converged, effective_samples, fit_sse
 from .config import DiagnosisConfig
 from .decision import holm, loss_differential_test, passes
 from .experiment import design_experiment
 from .record import DiagnosisRecord
 from .results import CandidateResult, Diagnosis, Evidence, FitScreen, Outcome, RecordShare, Round
 
-#: Trust-region iterations of the core model's fits and of its candidates' refits (with one
-#: start each): without direction memory the core converges within them, and every round
-#: refits it many times, so the start grid's extra linear fits would multiply the run time.
+#: Trust-region iterations of the core model's first fit and of its candidates' fresh refits
+#: (with one start each): every round refits it many times, so the start grid's extra linear
+#: fits would multiply the run time. The model a round starts from is then converged by warm
+#: refits (:func:`.candidates.converged`): on some records 25 iterations stop at 1.5-3x the
+#: converged error.
 CORE_NFEV = 25
 
 
 def core_model(rec: DiagnosisRecord, progress=None) -> GeneralizedPI:
     """The diagnosis's own model: a GPI with the actuator's fast time scales only (charging,
     back-relaxation: below ``creep_min_tau_s``), no delay and no optional stage, fitted on the
-    fit rows; the candidates are the stages it leaves out.
+    fit rows and converged there; the candidates are the stages it leaves out.
 
     It carries no direction memory: on a fit part of a few thousand samples the direction
     channels' weights are poorly determined, and refits with a candidate's block (a delay
     above all) overfit them (held-out error several times the blocked CV's), which would bias
     the loss differentials the decision rests on."""
     taus = tuple(t for t in DEFAULT_MEMORY_TAUS_S if t < rec.config.creep_min_tau_s)
-    return GeneralizedPI(memory_taus_s=taus, delay_s=0.0, dt_s=rec.dt_s, direction_memory_v=(),
-                         max_nfev=CORE_NFEV, start_tau_factors=(1.0,), progress=progress
-                         ).fit(rec.u_fit, rec.y_fit)
+    model = GeneralizedPI(memory_taus_s=taus, delay_s=0.0, dt_s=rec.dt_s,
+                          direction_memory_v=(), max_nfev=CORE_NFEV, start_tau_factors=(1.0,),
+                          progress=progress).fit(rec.u_fit, rec.y_fit)
+    return converged(model, rec)
 
 
 def _given(model, rec: DiagnosisRecord) -> GeneralizedPI:
@@ -240,6 +243,8 @@ def diagnose_records(records, *, model=None, config: DiagnosisConfig | None = No
         if refined is not None:
             d.rounds[-1] = _with_params(rnd, refined.params)
             current = refined.model or current
+        if not given:   # a given model stays frozen; the own model is the next start
+            current = converged(current, rec)
         names.remove(rnd.accepted)
     d.model_after = current
     d.next_experiment = design_experiment(d, rec)
