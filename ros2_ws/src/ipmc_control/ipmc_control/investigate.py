@@ -12,8 +12,10 @@ undecided as before, the next experiment would decide only effects that an earli
 to show them decided, or it would overrun the budget of recorded minutes.
 
 Each new record is diagnosed on its own, from the diagnosis's core model refitted on its fit
-part: the experiment repeats the probes in its held-out part after an identification input,
-so that record alone judges every candidate on the excitation that shows it, whereas blocks
+part with the blocks of the effects earlier rounds accepted (``known``: fitted on this fit
+part, not judged again; the new record was made for other effects and need not show them):
+the experiment repeats the probes in its held-out part after an identification input, so
+that record alone judges every candidate on the excitation that shows it, whereas blocks
 fitted around the earlier record's frozen model would be judged against that model's errors.
 Diagnosing all the records together (``ipmc diagnose --data A --data B``;
 ``residual_diagnoser(together=True)``) fits one core model to every excitation instead; with
@@ -131,7 +133,8 @@ class Runner(Protocol):
 
 
 #: Diagnoses the records made so far (oldest first) into a report folder.
-Diagnoser = Callable[[list[Recorded], Path], Verdicts]
+#: (records, report folder, effects earlier rounds accepted) -> the verdicts.
+Diagnoser = Callable[[list[Recorded], Path, tuple[str, ...]], Verdicts]
 Progress = Callable[[str], None]
 
 
@@ -277,9 +280,10 @@ def stop_reason(inv: Investigation, max_rounds: int) -> str | None:
 
 def play_round(number: int, plan: PlannedInput, undecided: tuple[str, ...], runner: Runner,
                diagnoser: Diagnoser, out_dir: Path, say: Progress,
-               earlier: list[Recorded] | None = None) -> InvestigationRound:
+               earlier: list[Recorded] | None = None, known: tuple[str, ...] = ()
+               ) -> InvestigationRound:
     """Play ``plan``, record it and diagnose it with the ``earlier`` records into
-    ``out_dir``."""
+    ``out_dir``, the ``known`` effects (earlier rounds') in the model it starts from."""
     t0 = time.monotonic()
     why = f" to decide {', '.join(undecided)}" if undecided else ""
     say(f"round {number}: playing {plan.label}{why} on {runner.describe()} (into {out_dir})")
@@ -288,7 +292,7 @@ def play_round(number: int, plan: PlannedInput, undecided: tuple[str, ...], runn
     records = [*(earlier or []), rec]
     say(f"round {number}: recorded {rec.u_v.size} samples ({rec.duration_s:.0f} s) in "
         f"{rec.path}; diagnosing")
-    verdicts = diagnoser(records, out_dir / "diagnosis")
+    verdicts = diagnoser(records, out_dir / "diagnosis", known)
     rnd = InvestigationRound(number, undecided, plan, rec, verdicts, time.monotonic() - t0)
     found = ", ".join(verdicts.effects_found) or "none"
     left = ", ".join(verdicts.undecided()) or "nothing"
@@ -328,7 +332,8 @@ def investigate(runner: Runner, first: PlannedInput, diagnoser: Diagnoser, out_d
             n = len(inv.rounds) + 1
             inv.rounds.append(play_round(n, plan, undecided, runner, diagnoser,
                                          out_dir / f"round_{n}", say,
-                                         [r.record for r in inv.rounds]))
+                                         [r.record for r in inv.rounds],
+                                         tuple(inv.effects_found)))
             why = stop_reason(inv, max_rounds)
             if why is not None:
                 inv.stopped_because = why
@@ -366,15 +371,17 @@ def verdicts_of(d, report_dir: Path, paths: dict) -> Verdicts:
 def residual_diagnoser(candidates: list[str] | None = None, progress: Progress | None = None,
                        together: bool = False) -> Diagnoser:
     """The diagnosis of ``ipmc diagnose`` (own core model; ``candidates``: default all) of the
-    newest record, or with ``together`` of every record so far at once; its report written to
-    the round's ``diagnosis/`` folder."""
+    newest record, starting from the effects earlier rounds accepted, or with ``together`` of
+    every record so far at once (every effect judged again); its report written to the
+    round's ``diagnosis/`` folder."""
     from ipmc_model.diagnosis.report import write_report
     from ipmc_model.diagnosis.search import diagnose_records
 
-    def run(records: list[Recorded], report_dir: Path) -> Verdicts:
+    def run(records: list[Recorded], report_dir: Path, known: tuple[str, ...] = ()
+            ) -> Verdicts:
         records = records if together else records[-1:]
         d = diagnose_records([(str(r.path), r.t_s, r.u_v, r.y_mm, r.parts) for r in records],
-                             candidates=candidates,
+                             candidates=candidates, known=() if together else known,
                              progress=(lambda text: progress("  " + text)) if progress else None)
         summary = write_report(d, report_dir, data_label=", ".join(str(r.path) for r in records))
         return verdicts_of(d, report_dir, summary)

@@ -117,6 +117,20 @@ def test_the_model_a_round_starts_from_is_converged_on_the_fit_rows():
     assert effective_samples(e) * np.log(fit_sse(done, rec) / again) < 2 * CONVERGED_LR
 
 
+def test_a_known_effect_is_in_the_starting_model_and_not_judged_again():
+    # an earlier record decided the dead zone: this record's diagnosis starts with it fitted
+    from ipmc_model.diagnosis.search import diagnose_records
+
+    r = plant_record({"dead_zone": {"width_v": 0.4}}, 240.0, 0)
+    d = diagnose_records([("record", r.t_s, r.u_v, r.y_mm)], known=("dead_zone",),
+                         candidates=["dead_zone", "drift"])
+    assert d.known == ("dead_zone",)
+    assert 0.3 < d.model_before.dead_zone_v < 0.5
+    assert [c.name for c in d.candidates] == ["drift"] and d.effects_found == []
+    plain = diagnose_records([("record", r.t_s, r.u_v, r.y_mm)], candidates=["drift"])
+    assert d.rmse_before_mm < 0.5 * plain.rmse_before_mm
+
+
 def test_a_profile_interval_is_where_the_deviance_stays_within_chi2():
     """A deviance n_eff ln(SSE / SSE_min) = ((x - c) / s)^2 has the 95 % interval
     c -+ 1.96 s: interpolated on a grid that traces it, from the parabola when it lies

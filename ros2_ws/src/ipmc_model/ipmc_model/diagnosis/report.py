@@ -83,6 +83,7 @@ def summary_of(d: Diagnosis, paths: dict) -> dict:
         "rule": RULE.format(alpha=c.family_alpha, share=c.material_noise_share, margin=margin,
                             settle=c.settle_s),
         "given_model": d.given_model,
+        "known_effects": list(d.known),
         "candidates": [r.as_dict() for r in d.candidates],
         "rounds": [{"number": r.number, "rmse_start_mm": r.rmse_start_mm,
                     "accepted": r.accepted, "results": [x.as_dict() for x in r.results]}
@@ -137,6 +138,9 @@ def markdown(d: Diagnosis, s: dict, label: str, figure: str | None) -> str:
     rate = 1.0 / d.model_before.dt_s
     base = "the given model (frozen; blocks fitted around it)" if d.given_model else \
         "the core GPI model (charging, back-relaxation, path memory; no delay, no creep)"
+    if d.known:
+        base += (f", with {', '.join(d.known)} (decided on an earlier record; fitted on these "
+                 f"fit rows, not judged again)")
     split = "; ".join(f"{s.name}: {s.stop - s.start} samples, fitted on the first "
                       f"{s.cut - s.start}, judged on the last {s.stop - s.cut}"
                       for s in d.segments)

@@ -138,6 +138,8 @@ class Diagnosis:
     excitation: dict = field(default_factory=dict)
     #: The experiment that would decide the not-testable candidates (None: nothing to run).
     next_experiment: Experiment | None = None
+    #: Effects an earlier record decided: in ``model_before`` from the start, not judged here.
+    known: tuple[str, ...] = ()
 
     @property
     def effects_found(self) -> list[str]:

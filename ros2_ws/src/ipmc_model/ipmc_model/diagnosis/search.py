@@ -193,6 +193,22 @@ def _with_params(rnd: Round, params: dict) -> Round:
     return replace(rnd, results=tuple(update(r) for r in rnd.results))
 
 
+def with_known(current: GeneralizedPI, rec: DiagnosisRecord, known: list[str], given: bool,
+               say) -> tuple[GeneralizedPI, tuple[str, ...]]:
+    """``current`` with the blocks of the ``known`` effects fitted on the fit rows (each as its
+    candidate fits it), and the effects that could be fitted."""
+    done = []
+    for name in known:
+        out = CANDIDATES[name].fit(current, rec, given)
+        if isinstance(out, str):
+            say(f"known effect {name} not fitted on this record: {out}")
+            continue
+        current = out.model if given else converged(out.model, rec)
+        done.append(name)
+        say(f"known effect {name}: fitted into the starting model ({out.scan or 'refit'})")
+    return current, tuple(done)
+
+
 def diagnose(t_s, u_v, y_mm, *, model=None, config: DiagnosisConfig | None = None,
              candidates=None, progress=None) -> Diagnosis:
     """Diagnose one record: the missing effects of ``model`` (another day's GPI, frozen) or
@@ -206,10 +222,15 @@ def diagnose(t_s, u_v, y_mm, *, model=None, config: DiagnosisConfig | None = Non
 
 
 def diagnose_records(records, *, model=None, config: DiagnosisConfig | None = None,
-                     candidates=None, progress=None) -> Diagnosis:
+                     candidates=None, progress=None, known=()) -> Diagnosis:
     """Diagnose several records ``(name, t_s, u_v, y_mm)`` at once, as :func:`diagnose` one:
     every model is fitted on the fit parts of all (joined by rests at 0 V,
-    :class:`DiagnosisRecord`) and judged on the held-out parts of all."""
+    :class:`DiagnosisRecord`) and judged on the held-out parts of all.
+
+    ``known``: effects an earlier record decided (``ipmc investigate``'s earlier rounds). Their
+    blocks are in the model the rounds start from, fitted on these fit rows, and they are
+    not judged again: a record made to decide another effect need not be able to show them,
+    and a model without them would carry their error into every other candidate's test."""
     say = progress or (lambda text: None)
     t0 = time.perf_counter()
     cfg = config or DiagnosisConfig()
@@ -225,8 +246,10 @@ def diagnose_records(records, *, model=None, config: DiagnosisConfig | None = No
         say(f"fitting the core model on {int(rec.fit_rows.sum())} samples "
             f"({', '.join(f'the first {s.cut - s.start} of {s.name}' for s in rec.segments)})")
         current = core_model(rec)
+    current, known = with_known(current, rec, [n for n in known if n in names], given, say)
+    names = [n for n in names if n not in known]
     d = Diagnosis(rec.t_s, rec.u_v, rec.y_mm, rec.held_rows, rec.segments, cfg, given,
-                  current, current,
+                  current, current, known=known,
                   noise_floor_mm=rec.excitation.noise_floor_mm,
                   excitation=rec.excitation.as_dict())
     for number in range(1, cfg.max_rounds + 1):
