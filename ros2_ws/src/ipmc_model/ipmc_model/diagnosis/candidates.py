@@ -372,9 +372,11 @@ MAX_POLISH = 6
 
 
 def converged(model: GeneralizedPI, rec: DiagnosisRecord) -> GeneralizedPI:
-    """``model`` warm refitted until a refit gains less than :data:`CONVERGED_LR` on the fit
-    rows. A short fit stops short of its optimum, and a candidate refitted from it would win
-    the remainder as if its block had explained it."""
+    """``model`` warm refitted (at its ridge weight) while a refit lowers the fit rows' error,
+    until one gains less than :data:`CONVERGED_LR`. A short fit can stop short of its optimum,
+    and a candidate refitted from it would win the remainder as if its block had explained
+    it. A refit that does not lower the error ends it: at a fixed ridge weight a refit may
+    trade fit error for smaller weights."""
     sse = fit_sse(model, rec)
     for _ in range(MAX_POLISH):
         r = (model.simulate(rec.u_fit) - rec.y_fit)[rec.fit_obs]
