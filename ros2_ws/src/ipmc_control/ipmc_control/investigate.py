@@ -283,7 +283,8 @@ def play_round(number: int, plan: PlannedInput, undecided: tuple[str, ...], runn
                earlier: list[Recorded] | None = None, known: tuple[str, ...] = ()
                ) -> InvestigationRound:
     """Play ``plan``, record it and diagnose it with the ``earlier`` records into
-    ``out_dir``, the ``known`` effects (earlier rounds') in the model it starts from."""
+    ``out_dir``, the ``known`` effects (earlier rounds') in the model it starts from, except
+    those this round was played to decide (``undecided``): they are judged again."""
     t0 = time.monotonic()
     why = f" to decide {', '.join(undecided)}" if undecided else ""
     say(f"round {number}: playing {plan.label}{why} on {runner.describe()} (into {out_dir})")
@@ -292,7 +293,8 @@ def play_round(number: int, plan: PlannedInput, undecided: tuple[str, ...], runn
     records = [*(earlier or []), rec]
     say(f"round {number}: recorded {rec.u_v.size} samples ({rec.duration_s:.0f} s) in "
         f"{rec.path}; diagnosing")
-    verdicts = diagnoser(records, out_dir / "diagnosis", known)
+    verdicts = diagnoser(records, out_dir / "diagnosis",
+                         tuple(k for k in known if k not in undecided))
     rnd = InvestigationRound(number, undecided, plan, rec, verdicts, time.monotonic() - t0)
     found = ", ".join(verdicts.effects_found) or "none"
     left = ", ".join(verdicts.undecided()) or "nothing"

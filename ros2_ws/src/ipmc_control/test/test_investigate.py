@@ -290,6 +290,17 @@ def test_the_next_round_starts_from_the_effects_earlier_rounds_accepted(tmp_path
     assert sorted(inv.effects_found) == ["creep", "delay"]
 
 
+def test_an_accepted_effect_a_round_was_played_to_pin_down_is_judged_again(tmp_path):
+    # round 1 accepts creep but leaves its time constant open; round 2 is played to decide it,
+    # so its diagnosis judges creep again instead of starting from it
+    pin_down = ({"creep": "accepted", "delay": "rejected"}, creep_experiment())
+    diagnoser = stand_in_diagnoser([pin_down, ({"creep": "rejected"}, None)])
+    inv = investigate(StandInRunner(), _first(tmp_path), diagnoser, tmp_path, budget_s=600.0)
+    assert inv.rounds[1].undecided == ("creep",)
+    assert diagnoser.known == [(), ()]
+    assert inv.effects_found == []
+
+
 def test_the_diagnoser_takes_the_newest_record_or_every_record_together(tmp_path):
     from ipmc_driver.plant import IpmcPlant
     from ipmc_driver.signals import random_sine
