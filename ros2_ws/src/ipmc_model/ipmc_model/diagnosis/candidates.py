@@ -205,9 +205,14 @@ def with_new_columns(model: GeneralizedPI, rec: DiagnosisRecord, change, iterati
     return m
 
 
+def fit_residual(model: GeneralizedPI, rec: DiagnosisRecord) -> np.ndarray:
+    """Free-run error of ``model`` on the fit rows."""
+    return (model.simulate(rec.u_fit) - rec.y_fit)[rec.fit_obs]
+
+
 def fit_sse(model: GeneralizedPI, rec: DiagnosisRecord) -> float:
     """Free-run squared error of ``model`` on the fit rows."""
-    e = (model.simulate(rec.u_fit) - rec.y_fit)[rec.fit_obs]
+    e = fit_residual(model, rec)
     return float(e @ e)
 
 
@@ -377,15 +382,15 @@ def converged(model: GeneralizedPI, rec: DiagnosisRecord) -> GeneralizedPI:
     and a candidate refitted from it would win the remainder as if its block had explained
     it. A refit that does not lower the error ends it: at a fixed ridge weight a refit may
     trade fit error for smaller weights."""
-    sse = fit_sse(model, rec)
+    r = fit_residual(model, rec)
     for _ in range(MAX_POLISH):
-        r = (model.simulate(rec.u_fit) - rec.y_fit)[rec.fit_obs]
         nxt = warm_refit(model, rec)
-        new = fit_sse(nxt, rec)
+        r_new = fit_residual(nxt, rec)
+        sse, new = float(r @ r), float(r_new @ r_new)
         if not new < sse:
             break
         lr = effective_samples(r) * math.log(sse / new)
-        model, sse = nxt, new
+        model, r = nxt, r_new
         if lr < CONVERGED_LR:
             break
     return model
@@ -425,7 +430,7 @@ class Profile:
     def of(cls, x, fits: list, rec: DiagnosisRecord, resolution: float = 0.0) -> Profile:
         sse = np.array([fit_sse(m, rec) for m in fits])
         best = fits[int(np.argmin(sse))]
-        n_eff = effective_samples((best.simulate(rec.u_fit) - rec.y_fit)[rec.fit_obs])
+        n_eff = effective_samples(fit_residual(best, rec))
         return cls(np.asarray(x, float), list(fits), sse, n_eff, resolution)
 
     @classmethod

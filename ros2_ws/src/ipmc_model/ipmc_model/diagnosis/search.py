@@ -15,7 +15,14 @@ import numpy as np
 from scipy.stats import chi2
 
 from ..hysteresis import DEFAULT_MEMORY_TAUS_S, GeneralizedPI
-from .candidates import CANDIDATES, Fitted, converged, effective_samples, fit_sse
+from .candidates import (
+    CANDIDATES,
+    Fitted,
+    converged,
+    effective_samples,
+    fit_residual,
+    fit_sse,
+)
 from .config import DiagnosisConfig
 from .decision import holm, loss_differential_test, passes
 from .experiment import design_experiment
@@ -123,7 +130,7 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
     cfg = rec.config
     y_cur = current.simulate(rec.u_v)
     margin = cfg.material_noise_share * rec.excitation.noise_floor_mm ** 2
-    r_fit = (current.simulate(rec.u_fit) - rec.y_fit)[rec.fit_obs]
+    r_fit = fit_residual(current, rec)
     sse_fit, n_eff = float(r_fit @ r_fit), effective_samples(r_fit)
     results, tested, untestable = {}, {}, {}
     for name in names:
