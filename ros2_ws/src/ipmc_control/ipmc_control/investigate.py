@@ -86,14 +86,16 @@ class PlannedInput:
 
 @dataclass(frozen=True)
 class Recorded:
-    """A record: time (s), applied voltage (V), tip (mm), where it was written, and the parts
-    of the experiment it played (its probes are where the diagnosis judges their effects)."""
+    """A record: time (s), applied voltage (V), tip (mm; NaN where a sample was lost), where
+    it was written, the parts of the experiment it played (its probes are where the diagnosis
+    judges their effects) and what was lost on the way, if anything."""
 
     t_s: np.ndarray
     u_v: np.ndarray
     y_mm: np.ndarray
     path: Path
     parts: tuple[ExperimentPart, ...] = ()
+    lost: str | None = None
 
     @property
     def duration_s(self) -> float:
@@ -290,6 +292,8 @@ def play_round(number: int, plan: PlannedInput, undecided: tuple[str, ...], runn
     say(f"round {number}: playing {plan.label}{why} on {runner.describe()} (into {out_dir})")
     rec = runner.record(plan, out_dir)
     rec = replace(rec, parts=placed_parts(plan, rec, say))
+    if rec.lost:
+        say(f"round {number}: {rec.lost}")
     records = [*(earlier or []), rec]
     say(f"round {number}: recorded {rec.u_v.size} samples ({rec.duration_s:.0f} s) in "
         f"{rec.path}; diagnosing")
@@ -470,8 +474,11 @@ class GraphRunner:
             hint = "" if self.rig_port else " (--in-process runs the simulated IPMC without ROS)"
             raise RuntimeError(f"ipmc bringup exited with code {code}; see "
                                f"{out_dir / 'bringup.log'}{hint}")
-        rec = load_record(bag)
-        return Recorded(rec.t_s - rec.t_s[0], rec.u_v, rec.y_mm, bag)
+        notes: list[str] = []
+        # a loaded machine or a rig's link loses samples: kept as rows not measured
+        rec = load_record(bag, gaps=True, notes=notes)
+        lost = next((n.rstrip(".") for n in notes if "not measured" in n), None)
+        return Recorded(rec.t_s - rec.t_s[0], rec.u_v, rec.y_mm, bag, lost=lost)
 
 
 def stop_process(proc: subprocess.Popen) -> None:

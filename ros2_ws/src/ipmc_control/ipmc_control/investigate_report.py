@@ -8,6 +8,8 @@ import math
 import os
 from pathlib import Path
 
+import numpy as np
+
 from ipmc_model.diagnosis.experiment import ExperimentPart
 
 from .investigate import Investigation, InvestigationRound
@@ -71,6 +73,7 @@ def round_summary(r: InvestigationRound) -> dict:
         "noise_floor_mm": _num(v.noise_floor_mm),
         "record": str(r.record.path),
         "recorded_s": r.record.duration_s,
+        "samples_lost": int(np.sum(~np.isfinite(r.record.y_mm))),
         "wall_s": r.wall_s,
         "diagnosis": str(v.report_dir),
         "model_before": str(v.model_before) if v.model_before else None,
@@ -150,6 +153,7 @@ def _round_lines(r: InvestigationRound, rs: dict, out: Path) -> list[str]:
              f"Played: {r.played.label} (`{_rel(r.played.path, out)}`), recorded "
              f"{r.record.duration_s:.0f} s to `{_rel(r.record.path, out)}` "
              f"({r.wall_s:.0f} s wall time).", "",
+             *([f"Lost on the way: {r.record.lost}.", ""] if r.record.lost else []),
              "| part | effect | from (s) | length (s) | why |", "|---|---|---|---|---|"]
     lines += [f"| {p.name} | {p.effect or '-'} | {p.start_s:.1f} | {p.duration_s:.1f} | "
               f"{p.reason} |" for p in r.played.parts]

@@ -7,6 +7,7 @@ import json
 import re
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -122,6 +123,26 @@ def test_summary_and_report_tell_each_round(tmp_path):
     assert "## Round 2" in report and "Undecided before it: creep" in report
     assert "holds of 36 s" in report
     assert not HISTORY.search(report + json.dumps(doc))
+
+
+class LossyRunner(StandInRunner):
+    """Loses 42 samples of every record (y NaN, as ``load_record(gaps=True)`` keeps them)."""
+
+    def record(self, plan: PlannedInput, out_dir: Path) -> Recorded:
+        rec = super().record(plan, out_dir)
+        y = rec.y_mm.copy()
+        y[100:142] = np.nan
+        return replace(rec, y_mm=y, lost="bag: 42 of ... samples were not measured")
+
+
+def test_a_round_says_what_its_record_lost(tmp_path):
+    said: list[str] = []
+    inv = investigate(LossyRunner(), _first(tmp_path), stand_in_diagnoser([DECIDED]), tmp_path,
+                      budget_s=600.0, progress=said.append)
+    assert any(line.startswith("round 1: bag: 42 of") for line in said)
+    doc = write_investigation(inv, tmp_path)
+    assert doc["rounds"][0]["samples_lost"] == 42
+    assert "Lost on the way: bag: 42 of" in (tmp_path / "report.md").read_text()
 
 
 def test_the_budget_stops_before_an_experiment_that_would_overrun_it(tmp_path):

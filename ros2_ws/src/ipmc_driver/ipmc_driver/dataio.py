@@ -21,7 +21,7 @@ import numpy as np
 from .validation import check_output_file
 
 __all__ = ["DataError", "ImplausibleDataWarning", "Record", "check_plausibility", "export_main",
-           "load_record", "save_csv", "write_atomic"]
+           "fill_gaps", "load_record", "save_csv", "write_atomic"]
 
 VOLTAGE_TOPIC = "/ipmc/voltage"
 DISPLACEMENT_TOPIC = "/ipmc/displacement"
@@ -88,7 +88,7 @@ class Record:
 
 
 def check_record(record: Record, *, source: str = "record", min_samples: int = MIN_SAMPLES,
-                 max_jitter: float = MAX_JITTER) -> Record:
+                 max_jitter: float = MAX_JITTER, missing_y: bool = False) -> Record:
     """Raise :class:`DataError` unless ``record`` is finite, long enough and uniformly sampled.
 
     Parameters
@@ -103,16 +103,21 @@ def check_record(record: Record, *, source: str = "record", min_samples: int = M
         Largest accepted deviation of one sampling interval from the median interval, as a
         fraction of the median interval. A missing sample (a gap) is an interval of about twice
         the median: it is refused for any ``max_jitter`` below 1.
+    missing_y : bool
+        Accept NaN in ``y_mm`` (a sample not measured, :func:`fill_gaps`); ``min_samples``
+        then counts the measured ones. Time and voltage must be finite regardless.
 
     Returns
     -------
     Record
         ``record`` itself.
     """
-    n = len(record)
+    n = int(np.isfinite(record.y_mm).sum()) if missing_y else len(record)
     if n < min_samples:
-        raise DataError(f"{source} has too few samples: {n}, need at least {min_samples}.")
-    for name, unit in (("t_s", "s"), ("u_v", "V"), ("y_mm", "mm")):
+        measured = " measured" if missing_y else ""
+        raise DataError(f"{source} has too few{measured} samples: {n}, need at least "
+                        f"{min_samples}.")
+    for name, unit in (("t_s", "s"), ("u_v", "V"), ("y_mm", "mm"))[:2 if missing_y else 3]:
         arr = getattr(record, name)
         bad = np.flatnonzero(~np.isfinite(arr))
         if bad.size:
@@ -120,7 +125,7 @@ def check_record(record: Record, *, source: str = "record", min_samples: int = M
             raise DataError(
                 f"{source} has {bad.size} non-finite (NaN or inf) value(s) in {name} ({unit}), "
                 f"the first at sample {i} (t = {record.t_s[i]:.6g} s).")
-    if n < 2:
+    if len(record) < 2:
         return record
     dt = np.diff(record.t_s)
     if np.any(dt <= 0):
@@ -138,6 +143,61 @@ def check_record(record: Record, *, source: str = "record", min_samples: int = M
             f"{record.t_s[i]:.9g} s and {record.t_s[i + 1]:.9g} s, against a median interval "
             f"of {med:.6g} s (tolerance {max_jitter:.0%}).")
     return record
+
+
+def fill_gaps(record: Record, *, source: str = "record",
+              max_jitter: float = MAX_JITTER) -> tuple[Record, str | None]:
+    """Put ``record`` on the regular grid of its median interval, its lost samples as rows
+    that were not measured.
+
+    An interval of about k median intervals (within ``max_jitter`` of one) lost k - 1
+    samples: they become rows with ``y_mm`` NaN and ``u_v`` held at the last voltage (the
+    rig's H-bridge holds its last command from one sample to the next). Where only the
+    displacement of a sample was lost, its voltage is kept; where only the voltage, the last
+    one is held. A model runs through such rows; a fit or an error uses the measured ones.
+
+    Returns
+    -------
+    (Record, str or None)
+        The regular record, and one sentence on what was lost (None when nothing was).
+
+    Raises
+    ------
+    DataError
+        An interval that is no whole number of median intervals, or time that does not
+        increase.
+    """
+    t = record.t_s
+    if len(record) < 2:
+        return record, None
+    dt = np.diff(t)
+    if not np.all(np.isfinite(t)) or np.any(dt <= 0):  # check_record says which and where
+        check_record(record, source=source, min_samples=0, max_jitter=max_jitter,
+                     missing_y=True)
+    med = float(np.median(dt))
+    steps = np.maximum(1, np.round(dt / med)).astype(np.int64)
+    dev = np.abs(dt - steps * med) / med
+    if np.any(dev > max_jitter):
+        i = int(np.argmax(dev > max_jitter))
+        raise DataError(
+            f"{source} has irregular time: an interval of {dt[i]:.6g} s between t = "
+            f"{t[i]:.9g} s and {t[i + 1]:.9g} s is no whole number of the median interval "
+            f"{med:.6g} s (tolerance {max_jitter:.0%}).")
+    rows = np.concatenate([[0], np.cumsum(steps)])
+    n = int(rows[-1]) + 1
+    u, y = np.full(n, np.nan), np.full(n, np.nan)
+    u[rows], y[rows] = record.u_v, record.y_mm
+    held = np.maximum.accumulate(np.where(np.isfinite(u), np.arange(n), 0))
+    filled = Record(t[0] + np.arange(n) * med, u[held], y)
+    lost = int(np.sum(~np.isfinite(y)))
+    if not lost:
+        return filled, None
+    gaps = steps[steps > 1]
+    i = int(np.argmax(steps))
+    note = (f"{source}: {lost} of {n} samples were not measured ({gaps.size} gap(s), the "
+            f"longest {(steps[i] - 1) * med:.3g} s after t = {t[i]:.6g} s); they are kept as "
+            f"rows without a displacement, the voltage held")
+    return filled, note
 
 
 #: Plausibility of a record's values and units (:func:`check_plausibility`), with the reason
@@ -234,7 +294,7 @@ def stamp_ns(stamp) -> int:
 def load_record(path, *, voltage_topic: str = VOLTAGE_TOPIC,
                 displacement_topic: str = DISPLACEMENT_TOPIC, min_samples: int = MIN_SAMPLES,
                 max_jitter: float = MAX_JITTER, allow_implausible: bool = False,
-                notes: list[str] | None = None) -> Record:
+                notes: list[str] | None = None, gaps: bool = False) -> Record:
     """Load a record from a ``t,u,y`` CSV file or a rosbag2 folder (MCAP or sqlite3).
 
     Parameters
@@ -256,6 +316,11 @@ def load_record(path, *, voltage_topic: str = VOLTAGE_TOPIC,
     notes : list of str, optional
         Receives :func:`check_plausibility`'s warnings (a command prints them); without it
         they are issued as :class:`ImplausibleDataWarning`.
+    gaps : bool
+        Keep a record that lost samples (a rig's link or a loaded recorder drops some): they
+        are rows with ``y_mm`` NaN and the voltage held (:func:`fill_gaps`), and a note says
+        how many. For a consumer that runs models through such rows (the diagnosis); without
+        it a gap is refused.
 
     Returns
     -------
@@ -273,11 +338,16 @@ def load_record(path, *, voltage_topic: str = VOLTAGE_TOPIC,
     if not p.exists():
         raise DataError(f"{p} does not exist.")
     if p.is_dir() or p.suffix in (".mcap", ".db3"):
-        record = _load_bag(p, voltage_topic, displacement_topic)
+        record = _load_bag(p, voltage_topic, displacement_topic, keep_unpaired=gaps)
     else:
         record = _load_csv(p)
-    check_record(record, source=str(p), min_samples=min_samples, max_jitter=max_jitter)
-    found = check_plausibility(record, source=str(p), allow_implausible=allow_implausible)
+    found: list[str] = []
+    if gaps:
+        record, lost = fill_gaps(record, source=str(p), max_jitter=max_jitter)
+        found += [lost + "."] if lost else []
+    check_record(record, source=str(p), min_samples=min_samples, max_jitter=max_jitter,
+                 missing_y=gaps)
+    found += check_plausibility(record, source=str(p), allow_implausible=allow_implausible)
     if notes is None:
         for note in found:
             warnings.warn(note, ImplausibleDataWarning, stacklevel=2)
@@ -320,7 +390,8 @@ def _load_csv(path: Path) -> Record:
     return Record(data[:, 0], data[:, 1], data[:, 2])
 
 
-def _load_bag(path: Path, voltage_topic: str, displacement_topic: str) -> Record:
+def _load_bag(path: Path, voltage_topic: str, displacement_topic: str,
+              keep_unpaired: bool = False) -> Record:
     if path.is_dir() and not (path / "metadata.yaml").exists():
         raise DataError(
             f"{path} is not a readable rosbag2 folder: it has no metadata.yaml (if its recorder "
@@ -337,7 +408,7 @@ def _load_bag(path: Path, voltage_topic: str, displacement_topic: str) -> Record
     samples = read_stamped_series(path, wanted)
     samples[displacement_topic] = {k: v * 1e3 for k, v in samples[displacement_topic].items()}
     return _pair(path, samples[voltage_topic], samples[displacement_topic],
-                 voltage_topic, displacement_topic)
+                 voltage_topic, displacement_topic, keep_unpaired)
 
 
 
@@ -394,8 +465,9 @@ def read_stamped_series(path, wanted: dict[str, str]) -> dict[str, dict[int, flo
     return samples
 
 def _pair(path: Path, volts: dict[int, float], metres_mm: dict[int, float],
-          voltage_topic: str, displacement_topic: str) -> Record:
-    """Pair samples by stamp; unpaired samples are dropped at the ends only."""
+          voltage_topic: str, displacement_topic: str, keep_unpaired: bool = False) -> Record:
+    """Pair samples by stamp; unpaired samples are dropped at the ends only. Inside, one is
+    refused, or with ``keep_unpaired`` kept with the other value NaN (:func:`fill_gaps`)."""
     for topic, store in ((voltage_topic, volts), (displacement_topic, metres_mm)):
         if not store:
             raise DataError(f"{path} has no messages on {topic}.")
@@ -405,6 +477,12 @@ def _pair(path: Path, volts: dict[int, float], metres_mm: dict[int, float],
                         f"the same header stamp.")
     first, last = common[0], common[-1]
     paired = set(common)
+    if keep_unpaired:
+        common = sorted(s for s in volts.keys() | metres_mm.keys() if first <= s <= last)
+        stamps = np.array(common, dtype=np.int64)
+        return Record((stamps - stamps[0]) * 1e-9,
+                      np.array([volts.get(s, np.nan) for s in common]),
+                      np.array([metres_mm.get(s, np.nan) for s in common]))
     # A recording starts and stops between the two messages of one sampling instant; an
     # unpaired sample inside the span means a message was lost.
     for topic, store in ((voltage_topic, volts), (displacement_topic, metres_mm)):

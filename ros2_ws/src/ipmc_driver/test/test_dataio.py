@@ -18,6 +18,7 @@ from ipmc_driver.dataio import (
     Record,
     check_plausibility,
     export_main,
+    fill_gaps,
     load_record,
     save_csv,
     write_atomic,
@@ -203,6 +204,42 @@ def test_load_bag_gap_raises(tmp_path):
     bag = write_bag(tmp_path / "bag", stamps, np.zeros(20), stamps, np.zeros(20))
     with pytest.raises(DataError, match="irregular time: a gap"):
         load_record(bag)
+
+
+def test_a_bag_that_lost_samples_loads_with_them_as_rows_not_measured(tmp_path):
+    # samples 7-9 lost on both topics, the displacement of 14 and the voltage of 17 alone
+    k = np.delete(np.arange(30), [7, 8, 9])
+    stamps = T0_NS + k * 10_000_000
+    volts, metres = k * 0.1, k * 1e-4
+    v_keep, d_keep = k != 17, k != 14
+    bag = write_bag(tmp_path / "bag", stamps[v_keep], volts[v_keep], stamps[d_keep],
+                    metres[d_keep])
+    notes: list[str] = []
+    rec = load_record(bag, gaps=True, notes=notes)
+    assert_allclose(rec.t_s, np.arange(30) * 0.01, atol=1e-9)
+    lost = [7, 8, 9, 14]
+    assert np.flatnonzero(np.isnan(rec.y_mm)).tolist() == lost
+    measured = np.delete(np.arange(30), lost)
+    assert_allclose(rec.y_mm[measured], measured * 0.1)
+    # the voltage is held through a loss; a sample's own voltage is kept where it came
+    assert_allclose(rec.u_v[[7, 8, 9]], 0.6) and rec.u_v[14] == pytest.approx(1.4)
+    assert rec.u_v[17] == pytest.approx(1.6)
+    assert len(notes) == 1 and "4 of 30 samples were not measured" in notes[0]
+    assert "the longest 0.03 s after t = 0.06 s" in notes[0]
+    with pytest.raises(DataError, match="no /ipmc/displacement"):
+        load_record(bag)
+
+
+def test_fill_gaps_refuses_an_interval_that_is_no_whole_number_of_samples():
+    t = np.r_[np.arange(10) * 0.01, 0.09 + 0.015 + np.arange(10) * 0.01]
+    rec = Record(t, np.ones(20), np.ones(20))
+    with pytest.raises(DataError, match="no whole number of the median interval"):
+        fill_gaps(rec, source="r.csv")
+    regular = _record()
+    same, note = fill_gaps(regular)
+    assert note is None
+    assert_allclose(same.t_s, regular.t_s, atol=1e-12)
+    assert_allclose(np.c_[same.u_v, same.y_mm], np.c_[regular.u_v, regular.y_mm])
 
 
 def test_load_bag_without_metadata_points_to_recover(tmp_path):

@@ -85,7 +85,9 @@ def main(argv: list[str] | None = None) -> int:
         records = []
         for path in args.data:
             notes: list[str] = []
-            rec = load_record(path, allow_implausible=args.allow_implausible, notes=notes)
+            # samples lost on a link are rows not measured: the models run through them
+            rec = load_record(path, allow_implausible=args.allow_implausible, notes=notes,
+                              gaps=True)
             print_notes("ipmc diagnose", notes)
             _progress(f"{path}: {len(rec)} samples at {rec.rate_hz:.4g} Hz")
             records.append((str(path), rec.t_s, rec.u_v, rec.y_mm))

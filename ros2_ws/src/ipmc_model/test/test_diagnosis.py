@@ -179,6 +179,29 @@ def test_creep_needs_holds_and_is_found_on_them():
     assert p["taus_s"] == [p["tau_s"]]
 
 
+def test_samples_lost_on_the_link_are_rows_the_models_run_through_not_fitted_or_judged():
+    """A record that lost stretches of samples (y NaN, the voltage held: dataio.fill_gaps)
+    is diagnosed on its measured rows: the creep is found as on the whole record."""
+    fx = {"creep": {"tau_s": 12.0, "gain_mm_per_v": -0.6}}
+    whole = plant_record(fx, 150.0, 1, holds=True)
+    y = whole.y_mm.copy()
+    lost = np.r_[1000:1042, 4100:4150, 6000:6010]    # in the fit part and the held-out part
+    y[lost] = np.nan
+    rec = DiagnosisRecord(whole.t_s, whole.u_v, y, DiagnosisConfig())
+    assert not np.any((rec.fit_rows | rec.held_rows | rec.judged)[lost])
+    assert rec.fit_rows.sum() + rec.held_rows.sum() == whole.u_v.size - lost.size
+    assert np.isfinite(rec.excitation.noise_floor_mm)
+    held = diagnose(Record(whole.t_s, whole.u_v, y))
+    assert held.effects_found[:1] == ["creep"]
+    assert held.rmse_after_mm < 0.3 * held.rmse_before_mm
+    assert all(np.isfinite(v) for v in held.record_rmse(held.model_after).values())
+    for measured_from_s, match in ((147.0, "measured samples are too few"),
+                                   (140.0, "its fit part has no measured sample")):
+        with pytest.raises(ValueError, match=match):
+            DiagnosisRecord(whole.t_s, whole.u_v, np.where(whole.t_s < measured_from_s,
+                                                           np.nan, y), DiagnosisConfig())
+
+
 def test_a_given_model_gets_the_block_of_what_changed_fitted_around_it():
     day1 = plant_record({}, 150.0, 2)
     rec1 = DiagnosisRecord(day1.t_s, day1.u_v, day1.y_mm, DiagnosisConfig())

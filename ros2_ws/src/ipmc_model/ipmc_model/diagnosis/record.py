@@ -3,7 +3,9 @@
 One record or several (another day's, an experiment's) are joined into one: in that order,
 each separated by a rest at 0 V whose output is not measured. Every model runs over the
 whole, is fitted on the fit rows (the first share of each record) and judged on the free run
-over the held-out rows (the rest of each); each record is split the same way.
+over the held-out rows (the rest of each); each record is split the same way. A row whose
+output was not measured (y NaN: a rest, a sample lost on the link) is in neither: models run
+through it.
 
 A record played from a proposed experiment (``next_experiment.json``) may come with the
 experiment's parts: its held-out part is then the probes, one per effect, and an effect with
@@ -61,11 +63,14 @@ class Segment:
 
 
 def _checked(name: str, t_s, u_v, y_mm) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    t, u, y = (as_signal(f"{name}: {k}", v) for k, v in
-               (("t_s", t_s), ("u_v", u_v), ("y_mm", y_mm)))
+    t, u = (as_signal(f"{name}: {k}", v) for k, v in (("t_s", t_s), ("u_v", u_v)))
+    # y NaN: a sample not measured (lost on the link, ipmc_driver.dataio.fill_gaps)
+    y = as_signal(f"{name}: y_mm", y_mm, allow_nan=True)
     same_length(t_s=t, u_v=u, y_mm=y)
-    if u.size < 200:
-        raise ValueError(f"{name}: {u.size} samples are too few to diagnose (at least 200)")
+    measured = int(np.isfinite(y).sum())
+    if measured < 200:
+        raise ValueError(f"{name}: {measured} measured samples are too few to diagnose (at "
+                         "least 200)")
     dt = np.diff(t)
     if not np.all(dt > 0):
         raise ValueError(f"{name}: the time stamps must increase")
@@ -134,6 +139,13 @@ class DiagnosisRecord:
         for s in segments:
             self.fit_rows[s.start:s.cut] = True
             self.held_rows[s.cut:s.stop] = True
+        measured = np.isfinite(self.y_mm)
+        self.fit_rows &= measured
+        self.held_rows &= measured
+        for s in segments:
+            for part, rows in (("fit", self.fit_rows), ("held-out", self.held_rows)):
+                if not rows[s.start:s.stop].any():
+                    raise ValueError(f"{s.name}: its {part} part has no measured sample")
         self.fit_end = int(np.flatnonzero(self.fit_rows)[-1]) + 1
         self.u_fit = self.u_v[:self.fit_end]
         self.y_fit = np.where(self.fit_rows, self.y_mm, np.nan)[:self.fit_end]

@@ -162,8 +162,9 @@ class Diagnosis:
 
     def record_rmse(self, model: GeneralizedPI) -> dict[str, float]:
         """Free-run RMSE (mm) over each record's held-out rows."""
-        e = model.simulate(self.u_v) - self.y_mm
-        return {s.name: float(np.sqrt(np.mean(e[s.cut:s.stop] ** 2))) for s in self.segments}
+        e = np.where(self.held_rows, model.simulate(self.u_v) - self.y_mm, np.nan)
+        return {s.name: float(np.sqrt(np.nanmean(e[s.cut:s.stop] ** 2)))
+                for s in self.segments}
 
     @property
     def rmse_before_mm(self) -> float:
