@@ -43,6 +43,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--report", required=True, metavar="DIR", help="output folder")
     p.add_argument("--effects", nargs="+", metavar="NAME", choices=list(CANDIDATES),
                    help=f"candidate effects to try (default all: {', '.join(CANDIDATES)})")
+    p.add_argument("--jobs", type=int, metavar="N",
+                   help="worker processes for a round's candidate fits and a profile's refits "
+                        "(default: the cores this process may use; the result is the same "
+                        "for any N)")
     p.add_argument("--seed", type=int, default=0,
                    help="accepted for scripts written for earlier versions; the diagnosis is "
                         "deterministic")
@@ -94,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.experiment:
             records[-1] = (*records[-1], _played(args.experiment, records[-1]))
         d = diagnose_records(records, model=model, candidates=args.effects,
-                             progress=_progress)
+                             progress=_progress, jobs=args.jobs)
         summary = write_report(d, args.report, data_label=", ".join(map(str, args.data)))
     except ValueError as exc:  # DataError, ModelFileError and bad inputs are ValueErrors
         print(f"ipmc diagnose: error: {exc}", file=sys.stderr)

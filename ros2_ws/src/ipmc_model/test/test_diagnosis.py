@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -200,6 +201,36 @@ def test_samples_lost_on_the_link_are_rows_the_models_run_through_not_fitted_or_
         with pytest.raises(ValueError, match=match):
             DiagnosisRecord(whole.t_s, whole.u_v, np.where(whole.t_s < measured_from_s,
                                                            np.nan, y), DiagnosisConfig())
+
+
+def test_fan_out_keeps_order_runs_closures_and_does_not_nest():
+    from ipmc_model.diagnosis.parallel import fan_out, using
+
+    offset = 10
+
+    def inner(x):    # a closure; inside a worker a fan-out runs in that worker
+        return fan_out(lambda k: (k + offset, os.getpid()), [x, x])
+
+    with using(2) as jobs:
+        out = fan_out(inner, [1, 2, 3])
+    assert jobs == 2 and [[v for v, _ in pair] for pair in out] == [[11, 11], [12, 12], [13, 13]]
+    assert all(pair[0][1] == pair[1][1] != os.getpid() for pair in out)
+    with using(1):
+        assert {pid for _, pid in fan_out(lambda k: (k, os.getpid()), [1, 2])} == {os.getpid()}
+    with pytest.raises(ValueError, match="jobs must be >= 1"), using(0):
+        pass
+
+
+def test_a_diagnosis_on_two_workers_is_the_one_in_process():
+    rec = plant_record({"dead_zone": {"width_v": 0.4}}, 100.0, 2)
+    names = ["drift", "dead_zone"]
+    one, two = (diagnose(rec, candidates=names, jobs=j) for j in (1, 2))
+    assert one.effects_found == two.effects_found == ["dead_zone"]
+    assert two.rmse_after_mm == pytest.approx(one.rmse_after_mm, rel=1e-6)
+    for a, b in zip(one.candidates, two.candidates, strict=True):
+        assert (a.name, a.outcome) == (b.name, b.outcome)
+        assert b.evidence.test.p_value == pytest.approx(a.evidence.test.p_value, rel=1e-4,
+                                                         abs=1e-12)
 
 
 def test_a_given_model_gets_the_block_of_what_changed_fitted_around_it():

@@ -35,6 +35,7 @@ from ..hysteresis import (
     lowpass_bank,
 )
 from .experiment import Probe, crossings, holds, probe_level_v
+from .parallel import fan_out
 from .record import DiagnosisRecord
 
 
@@ -65,6 +66,9 @@ class Candidate:
     meaning: ClassVar[str] = ""
     #: Parameters the block adds (the degrees of freedom of its fit-part screen).
     n_params: ClassVar[int] = 1
+    #: Its fit's run time in refits of the whole model (a scan costs several): the costliest
+    #: fits of a round start first on the workers.
+    refits: ClassVar[float] = 1.0
 
     def not_testable(self, rec: DiagnosisRecord, model: GeneralizedPI, given: bool
                      ) -> str | None:
@@ -439,7 +443,7 @@ class Profile:
         the best point's neighbours (a grid too coarse to trace it), traced again with points
         between them, on multiples of ``resolution`` (the finest step the parameter has)."""
         x = np.asarray(x, float)
-        prof = cls.of(x, [fit_at(float(v)) for v in x], rec, resolution)
+        prof = cls.of(x, fan_out(fit_at, x.tolist()), rec, resolution)
         k = int(np.argmin(prof.sse))
         if not prof._within_neighbours(k):
             return prof
@@ -452,7 +456,7 @@ class Profile:
             return prof
         merged = np.r_[x, fine]
         order = np.argsort(merged)
-        fits = prof.fits + [fit_at(float(v)) for v in fine]
+        fits = prof.fits + fan_out(fit_at, fine.tolist())
         return cls.of(merged[order], [fits[i] for i in order], rec, resolution)
 
     @property
@@ -668,6 +672,7 @@ MIN_DELAY_SAMPLES = 2
 class Delay(Candidate):
     name = "delay"
     meaning = "a transport delay between the command and the bending (drive, bus, sensor)"
+    refits = 1.5    # a descent over whole samples of quick refits, then the refit
 
     def not_testable(self, rec, model, given):
         return fast_input_reason(rec, model, "delay")
@@ -744,6 +749,7 @@ DEAD_ZONE_TOL_V = 0.01
 class DeadZone(Candidate):
     name = "dead_zone"
     meaning = "voltages below a threshold move no ions (a contact or electrode threshold)"
+    refits = 4.0    # a bounded scan of about ten quick refits, then the refit
 
     def not_testable(self, rec, model, given):
         # both parts: the fit rows set the width, and the judged rows decide only if they

@@ -142,9 +142,10 @@ class DiagnosisRecord:
         measured = np.isfinite(self.y_mm)
         self.fit_rows &= measured
         self.held_rows &= measured
-        for s in segments:
-            for part, rows in (("fit", self.fit_rows), ("held-out", self.held_rows)):
-                if not rows[s.start:s.stop].any():
+        for s in segments:   # (whole(): no held-out part)
+            for part, rows, a, b in (("fit", self.fit_rows, s.start, s.cut),
+                                     ("held-out", self.held_rows, s.cut, s.stop)):
+                if b > a and not rows[a:b].any():
                     raise ValueError(f"{s.name}: its {part} part has no measured sample")
         self.fit_end = int(np.flatnonzero(self.fit_rows)[-1]) + 1
         self.u_fit = self.u_v[:self.fit_end]

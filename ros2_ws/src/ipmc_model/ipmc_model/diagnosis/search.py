@@ -26,6 +26,7 @@ from .candidates import (
 from .config import DiagnosisConfig
 from .decision import holm, loss_differential_test, passes
 from .experiment import design_experiment
+from .parallel import fan_out, using
 from .record import DiagnosisRecord
 from .results import CandidateResult, Diagnosis, Evidence, FitScreen, Outcome, RecordShare, Round
 
@@ -98,21 +99,19 @@ def _rms(e: np.ndarray) -> float:
     return float(np.sqrt(np.mean(e ** 2)))
 
 
-def _try(name: str, current, rec, given, progress) -> tuple[str | None, Fitted | str]:
-    """(not-testable reason or None, fitted or why it could not be). A candidate the record
-    cannot test is still fitted where it can be: as a rival, it keeps the round from naming
-    another effect for a residual it would explain better."""
+def _try(name: str, current, rec, given) -> tuple[str | None, Fitted | str, str]:
+    """(not-testable reason or None, fitted or why it could not be, a line of progress). A
+    candidate the record cannot test is still fitted where it can be: as a rival, it keeps
+    the round from naming another effect for a residual it would explain better."""
     cand = CANDIDATES[name]
     why = cand.not_testable(rec, current, given)
     t0 = time.perf_counter()
     out = cand.fit(current, rec, given)
     took = time.perf_counter() - t0
     if isinstance(out, str):
-        progress(f"  {name}: {'not testable on this record: ' if why else ''}{out}")
-    else:
-        progress(f"  {name}: fitted in {took:.1f} s"
-                 + ("" if why is None else " (not testable on this record)"))
-    return why, out
+        return why, out, f"  {name}: {'not testable on this record: ' if why else ''}{out}"
+    return why, out, (f"  {name}: fitted in {took:.1f} s"
+                      + ("" if why is None else " (not testable on this record)"))
 
 
 def fit_screen(current_sse: float, n_eff: float, candidate, model, rec, alpha: float
@@ -133,8 +132,11 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
     r_fit = fit_residual(current, rec)
     sse_fit, n_eff = float(r_fit @ r_fit), effective_samples(r_fit)
     results, tested, untestable = {}, {}, {}
-    for name in names:
-        why, out = _try(name, current, rec, given, progress)
+    # each candidate is fitted around the same model: on as many cores as allowed
+    fits = fan_out(lambda name: _try(name, current, rec, given), names,
+                   costs=[CANDIDATES[n].refits for n in names])
+    for name, (why, out, line) in zip(names, fits, strict=True):
+        progress(line)
         if why is not None:
             untestable[name] = why
         if isinstance(out, str):
@@ -217,19 +219,20 @@ def with_known(current: GeneralizedPI, rec: DiagnosisRecord, known: list[str], g
 
 
 def diagnose(t_s, u_v, y_mm, *, model=None, config: DiagnosisConfig | None = None,
-             candidates=None, progress=None) -> Diagnosis:
+             candidates=None, progress=None, jobs: int | None = None) -> Diagnosis:
     """Diagnose one record: the missing effects of ``model`` (another day's GPI, frozen) or
     of the diagnosis's own core model, by rounds of the one decision rule.
 
     ``candidates``: names from :data:`CANDIDATES` (default all). ``progress(text)`` hears of
-    each stage.
+    each stage. ``jobs``: as :func:`diagnose_records`'.
     """
     return diagnose_records([("record", t_s, u_v, y_mm)], model=model, config=config,
-                            candidates=candidates, progress=progress)
+                            candidates=candidates, progress=progress, jobs=jobs)
 
 
 def diagnose_records(records, *, model=None, config: DiagnosisConfig | None = None,
-                     candidates=None, progress=None, known=()) -> Diagnosis:
+                     candidates=None, progress=None, known=(), jobs: int | None = None
+                     ) -> Diagnosis:
     """Diagnose several records ``(name, t_s, u_v, y_mm)`` at once, as :func:`diagnose` one:
     every model is fitted on the fit parts of all (joined by rests at 0 V,
     :class:`DiagnosisRecord`) and judged on the held-out parts of all.
@@ -237,7 +240,15 @@ def diagnose_records(records, *, model=None, config: DiagnosisConfig | None = No
     ``known``: effects an earlier record decided (``ipmc investigate``'s earlier rounds). Their
     blocks are in the model the rounds start from, fitted on these fit rows, and they are
     not judged again: a record made to decide another effect need not be able to show them,
-    and a model without them would carry their error into every other candidate's test."""
+    and a model without them would carry their error into every other candidate's test.
+
+    ``jobs``: worker processes for a round's candidates and a profile's refits (None: the
+    cores this process may use; the result is the same for any number)."""
+    with using(jobs):
+        return _diagnose_records(records, model, config, candidates, progress, known)
+
+
+def _diagnose_records(records, model, config, candidates, progress, known) -> Diagnosis:
     say = progress or (lambda text: None)
     t0 = time.perf_counter()
     cfg = config or DiagnosisConfig()
