@@ -4,6 +4,7 @@ clean plant's, the simulated and wall time, and each proposed experiment's lengt
 it decides. Prints figures; not part of the pass/fail suite.
 
     .venv/bin/python benchmarks/bench_investigate.py [--case creep ...] [--rate-hz 50] [--graph]
+    .venv/bin/python benchmarks/bench_investigate.py --twin-of REPORT_DIR
 
 ``--graph`` runs each round through the lock-step ROS graph (``ipmc bringup --sim --lockstep
 --experiment FILE --record BAG``, 100 Hz), as ``ipmc investigate --sim`` does; the default is
@@ -17,6 +18,10 @@ diagnosis's final held-out error on the clean plant under the last round's input
 under every round's input is diagnosed the same way): the error left when nothing is missing
 (goal: the investigation's final error within 1.2 x it); what the diagnosis found there is
 printed beside it.
+
+``--twin-of`` takes the report folder of an investigation run elsewhere (through the rig
+emulator: ``ipmc investigate --rig PTY --report DIR``) and prints the same comparison: the
+clean simulated IPMC under the last round's recorded voltages, diagnosed as that round was.
 """
 
 from __future__ import annotations
@@ -187,6 +192,33 @@ def run_case(case: Case, rate_hz: float, seed: int, out: Path, together: bool = 
     return lines
 
 
+def twin_of(report: Path, seed: int) -> list[str]:
+    """The clean twin of the investigation in ``report``: its last round's record's voltages
+    through the clean simulated IPMC, diagnosed with that round's experiment parts."""
+    import json
+
+    from ipmc_driver.dataio import load_record
+    from ipmc_driver.plant import IpmcPlant
+    from ipmc_model.diagnosis.experiment import played_parts, read_experiment
+
+    summary = json.loads((report / "summary.json").read_text())
+    last = summary["rounds"][-1]
+    rec = load_record(last["record"], gaps=True, notes=[])
+    parts = ()
+    if last["experiment"]["parts"]:
+        planned, u_plan, _ = read_experiment(last["experiment"]["path"])
+        parts = played_parts(planned, u_plan, rec.u_v, rec.dt_s)
+    run = IpmcPlant(effects=(), seed=seed, dt_s=rec.dt_s).run(rec.u_v)
+    d = diagnose_records([("clean twin", run.t_s, run.u_v, run.y_mm, parts)])
+    after = summary["rmse_after_mm"]
+    return [f"{report}: found {', '.join(summary['effects_found']) or 'nothing'}; after "
+            f"{after:.4f} mm, clean twin {d.rmse_after_mm:.4f} mm (found there: "
+            f"{', '.join(d.effects_found) or 'nothing'}): after / clean "
+            f"{after / d.rmse_after_mm:.2f}; {summary['recorded_min']:.1f} min recorded, "
+            f"{summary['wall_s'] / 60:.1f} min wall, {len(summary['rounds'])} rounds, "
+            f"{sum(r.get('samples_lost', 0) for r in summary['rounds'])} samples lost"]
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--case", action="append", choices=list(CASES),
@@ -199,7 +231,13 @@ def main() -> int:
     p.add_argument("--graph", action="store_true",
                    help="through the lock-step ROS graph at its rate (as ipmc investigate "
                         "--sim), not the simulated IPMC in this process")
+    p.add_argument("--twin-of", type=Path, metavar="REPORT_DIR",
+                   help="compare a finished investigation (its report folder) with its clean "
+                        "twin instead of running the cases")
     args = p.parse_args()
+    if args.twin_of:
+        print("\n".join(twin_of(args.twin_of, args.seed)))
+        return 0
     if args.graph:
         args.rate_hz = GraphRunner.rate_hz
     t0 = time.perf_counter()

@@ -20,8 +20,9 @@ import numpy as np
 
 from .validation import check_output_file
 
-__all__ = ["DataError", "ImplausibleDataWarning", "Record", "check_plausibility", "export_main",
-           "fill_gaps", "load_record", "save_csv", "write_atomic"]
+__all__ = ["DataError", "ImplausibleDataWarning", "LostSamplesWarning", "Record",
+           "check_plausibility", "export_main", "fill_gaps", "load_record", "save_csv",
+           "write_atomic"]
 
 VOLTAGE_TOPIC = "/ipmc/voltage"
 DISPLACEMENT_TOPIC = "/ipmc/displacement"
@@ -220,6 +221,10 @@ MIN_SPAN_MM = 0.05
 MAX_STEP_S = 0.5
 
 
+class LostSamplesWarning(UserWarning):
+    """A record lost samples, kept as rows not measured (:func:`fill_gaps`)."""
+
+
 class ImplausibleDataWarning(UserWarning):
     """A record's values look like another unit than s, V and mm (see
     :func:`check_plausibility`)."""
@@ -315,7 +320,8 @@ def load_record(path, *, voltage_topic: str = VOLTAGE_TOPIC,
         Accept values no IPMC record has (:func:`check_plausibility`), with a warning.
     notes : list of str, optional
         Receives :func:`check_plausibility`'s warnings (a command prints them); without it
-        they are issued as :class:`ImplausibleDataWarning`.
+        they are issued as :class:`ImplausibleDataWarning` (and the note on lost samples
+        as :class:`LostSamplesWarning`).
     gaps : bool
         Keep a record that lost samples (a rig's link or a loaded recorder drops some): they
         are rows with ``y_mm`` NaN and the voltage held (:func:`fill_gaps`), and a note says
@@ -341,18 +347,19 @@ def load_record(path, *, voltage_topic: str = VOLTAGE_TOPIC,
         record = _load_bag(p, voltage_topic, displacement_topic, keep_unpaired=gaps)
     else:
         record = _load_csv(p)
-    found: list[str] = []
+    lost = None
     if gaps:
         record, lost = fill_gaps(record, source=str(p), max_jitter=max_jitter)
-        found += [lost + "."] if lost else []
     check_record(record, source=str(p), min_samples=min_samples, max_jitter=max_jitter,
                  missing_y=gaps)
-    found += check_plausibility(record, source=str(p), allow_implausible=allow_implausible)
+    found = check_plausibility(record, source=str(p), allow_implausible=allow_implausible)
     if notes is None:
+        if lost:
+            warnings.warn(lost + ".", LostSamplesWarning, stacklevel=2)
         for note in found:
             warnings.warn(note, ImplausibleDataWarning, stacklevel=2)
     else:
-        notes.extend(found)
+        notes.extend(([lost + "."] if lost else []) + found)
     return record
 
 

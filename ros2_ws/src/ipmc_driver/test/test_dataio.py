@@ -15,6 +15,7 @@ from rosbags.typesys import Stores, get_typestore
 from ipmc_driver.dataio import (
     DataError,
     ImplausibleDataWarning,
+    LostSamplesWarning,
     Record,
     check_plausibility,
     export_main,
@@ -226,6 +227,8 @@ def test_a_bag_that_lost_samples_loads_with_them_as_rows_not_measured(tmp_path):
     assert rec.u_v[17] == pytest.approx(1.6)
     assert len(notes) == 1 and "4 of 30 samples were not measured" in notes[0]
     assert "the longest 0.03 s after t = 0.06 s" in notes[0]
+    with pytest.warns(LostSamplesWarning, match="4 of 30 samples were not measured"):
+        load_record(bag, gaps=True)
     with pytest.raises(DataError, match="no /ipmc/displacement"):
         load_record(bag)
 
