@@ -14,6 +14,12 @@ fit rows) lowers the held-out free-run squared error significantly and materiall
   the candidates the round may accept (the testable ones) at ``family_alpha``;
 * the mean gain must be at least ``material_noise_share`` times the noise floor squared.
 
+A candidate the rule does not accept, whose block the fit rows support and whose held-out
+gain has the right sign, is undecided rather than rejected when the held-out rows are too
+few to decide it: when the test would pass with less than ``min_power`` probability at the
+gain the fit rows show (:func:`power`, at Holm's first level). A record with its probe
+decides it.
+
 Of the candidates that pass, the round accepts the one with the largest mean gain; the next
 round refits the rest around it. Written by hand: SciPy has no Diebold-Mariano test and the
 project does not depend on statsmodels for one HAC variance.
@@ -62,7 +68,18 @@ def loss_differential_test(e_current, e_candidate, margin_mm2: float) -> LossTes
     else:
         stat = mean / math.sqrt(var / n) * math.sqrt((n - 1.0) / n)  # HLN factor, horizon 1
     p = float(stats.t.sf(stat, df=n - 1))
-    return LossTest(mean, float(stat), p, int(lag), float(margin_mm2))
+    se = math.sqrt(var / n) if var > 0 else 0.0
+    return LossTest(mean, float(stat), p, int(lag), float(margin_mm2), se)
+
+
+def power(test: LossTest, expected_gain_mm2: float, alpha: float) -> float:
+    """Probability that the one-sided test at level ``alpha`` passes on these held-out rows
+    when the mean gain is ``expected_gain_mm2``, with the test's own standard error (normal
+    approximation)."""
+    se = test.standard_error_mm2
+    if not se > 0:
+        return 1.0
+    return float(stats.norm.sf(stats.norm.isf(alpha) - expected_gain_mm2 / se))
 
 
 def holm(p_values: dict[str, float]) -> dict[str, float]:

@@ -35,7 +35,10 @@ RULE = ("An effect is accepted when the current model with its block, fitted on 
         "A round accepts the passing candidate with the largest gain and the next refits the "
         "rest around it. A candidate the record cannot test is still fitted as a rival: if it "
         "would gain the most, nothing is accepted and it is reported undecided, with what to "
-        "record.")
+        "record. A candidate that does not pass but whose block the fit rows support, with a "
+        "positive held-out gain, is undecided (not rejected) when the test would pass with "
+        "less than {power:.0%} probability at the gain the fit rows show: the held-out rows "
+        "are too few to decide it, and its probe is proposed.")
 
 
 def check_report_dir(out_dir) -> Path:
@@ -81,7 +84,7 @@ def summary_of(d: Diagnosis, paths: dict) -> dict:
         "noise_floor_mm": d.noise_floor_mm,
         "metric": METRIC.format(held=100 * (1 - c.fit_share)),
         "rule": RULE.format(alpha=c.family_alpha, share=c.material_noise_share, margin=margin,
-                            settle=c.settle_s),
+                            settle=c.settle_s, power=c.min_power),
         "given_model": d.given_model,
         "known_effects": list(d.known),
         "candidates": [r.as_dict() for r in d.candidates],

@@ -31,6 +31,8 @@ class LossTest:
     p_value: float
     bandwidth_samples: int
     margin_mm2: float
+    #: The mean gain's HAC standard error (mm^2): what the test's power follows.
+    standard_error_mm2: float = float("nan")
 
     @property
     def material(self) -> bool:
@@ -47,6 +49,9 @@ class FitScreen:
     needed: float
     effective_samples: float
     n_params: int
+    #: The fit rows' mean squared error the block removes (mm^2): the held-out gain it
+    #: predicts if the block is the effect.
+    mean_gain_mm2: float = float("nan")
 
     @property
     def passed(self) -> bool:

@@ -24,7 +24,7 @@ from .candidates import (
     fit_sse,
 )
 from .config import DiagnosisConfig
-from .decision import holm, loss_differential_test, passes
+from .decision import holm, loss_differential_test, passes, power
 from .experiment import design_experiment
 from .parallel import fan_out, using
 from .record import DiagnosisRecord
@@ -120,7 +120,8 @@ def fit_screen(current_sse: float, n_eff: float, candidate, model, rec, alpha: f
     new_sse = fit_sse(model, rec)
     lr = n_eff * math.log(current_sse / new_sse) if new_sse > 0 else math.inf
     return FitScreen(float(lr), float(chi2.ppf(1.0 - alpha, candidate.n_params)),
-                     float(n_eff), candidate.n_params)
+                     float(n_eff), candidate.n_params,
+                     float((current_sse - new_sse) / rec.fit_obs.sum()))
 
 
 def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, given: bool,
@@ -162,11 +163,32 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
     for name, (_, ev) in tested.items():
         ev = replace(ev, p_holm=p_adj.get(name, 1.0))
         outcome, reason = _verdict(name, ev, best, passing, cfg.family_alpha, untestable)
-        results[name] = CandidateResult(name, outcome, reason, number, ev)
+        res = CandidateResult(name, outcome, reason, number, ev)
+        short = (_too_few(res, cfg, len(p_adj), rec, current)
+                 if outcome is Outcome.REJECTED and name not in passing else None)
+        results[name] = (replace(res, outcome=Outcome.NOT_TESTABLE, reason=f"{short} ({reason})")
+                         if short else res)
     accepted = best if best is not None and best not in untestable else None
     rnd = Round(number, _rms(rec.judged_error(y_cur)), tuple(results[n] for n in names),
                 accepted)
     return rnd, (tested[accepted][0] if accepted else None)
+
+
+def _too_few(res: CandidateResult, cfg: DiagnosisConfig, family: int, rec: DiagnosisRecord,
+             current: GeneralizedPI) -> str | None:
+    """Why the held-out rows cannot decide a block the fit rows support (the test's power
+    at the gain they show is below ``min_power``), if they cannot and a probe can; None if
+    the rejection stands."""
+    sc, t = res.evidence.screen, res.evidence.test
+    if not (sc.passed and t.mean_gain_mm2 > 0 and sc.mean_gain_mm2 > 0):
+        return None
+    level = cfg.family_alpha / max(1, family)   # Holm's first step
+    pw = power(t, sc.mean_gain_mm2, level)
+    if pw >= cfg.min_power or CANDIDATES[res.name].probe(rec, current, res) is None:
+        return None
+    return (f"undecided: the held-out rows are too few to decide it; at the gain the fit "
+            f"rows show ({sc.mean_gain_mm2:.3g} mm^2) the test would pass with probability "
+            f"{pw:.0%} (< {cfg.min_power:.0%}); record its probe")
 
 
 def _verdict(name, ev: Evidence, best, passing, alpha, untestable) -> tuple[Outcome, str]:
@@ -237,10 +259,12 @@ def diagnose_records(records, *, model=None, config: DiagnosisConfig | None = No
     every model is fitted on the fit parts of all (joined by rests at 0 V,
     :class:`DiagnosisRecord`) and judged on the held-out parts of all.
 
-    ``known``: effects an earlier record decided (``ipmc investigate``'s earlier rounds). Their
-    blocks are in the model the rounds start from, fitted on these fit rows, and they are
-    not judged again: a record made to decide another effect need not be able to show them,
-    and a model without them would carry their error into every other candidate's test.
+    ``known``: effects an earlier record decided (``ipmc investigate``'s earlier rounds).
+    Those these records cannot test are carried: their blocks are in the model the rounds
+    start from, fitted on these fit rows, and not judged again (a record made to decide
+    another effect need not be able to show them, and a model without them would carry their
+    error into every other candidate's test). Those these records can test are judged again
+    with the rest: the newer record, as a rule longer, decides them anew.
 
     ``jobs``: worker processes for a round's candidates and a profile's refits (None: the
     cores this process may use; the result is the same for any number)."""
@@ -264,7 +288,13 @@ def _diagnose_records(records, model, config, candidates, progress, known) -> Di
         say(f"fitting the core model on {int(rec.fit_rows.sum())} samples "
             f"({', '.join(f'the first {s.cut - s.start} of {s.name}' for s in rec.segments)})")
         current = core_model(rec)
-    current, known = with_known(current, rec, [n for n in known if n in names], given, say)
+    carried = []
+    for name in (n for n in known if n in names):
+        if CANDIDATES[name].not_testable(rec, current, given) is None:
+            say(f"known effect {name}: this record can test it; judged again")
+        else:
+            carried.append(name)
+    current, known = with_known(current, rec, carried, given, say)
     names = [n for n in names if n not in known]
     d = Diagnosis(rec.t_s, rec.u_v, rec.y_mm, rec.held_rows, rec.segments, cfg, given,
                   current, current, known=known,
