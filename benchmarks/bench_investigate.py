@@ -205,7 +205,7 @@ def twin_of(report: Path, seed: int) -> list[str]:
     last = summary["rounds"][-1]
     rec = load_record(last["record"], gaps=True, notes=[])
     parts = ()
-    if last["experiment"]["parts"]:
+    if any(part["effect"] for part in last["experiment"]["parts"]):   # a proposed experiment
         planned, u_plan, _ = read_experiment(last["experiment"]["path"])
         parts = played_parts(planned, u_plan, rec.u_v, rec.dt_s)
     run = IpmcPlant(effects=(), seed=seed, dt_s=rec.dt_s).run(rec.u_v)

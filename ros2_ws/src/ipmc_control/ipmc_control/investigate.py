@@ -43,6 +43,7 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -454,7 +455,7 @@ class GraphRunner:
         return plan.duration_s * (1.0 if self.rig_port else 4.0) + 120.0
 
     def record(self, plan: PlannedInput, out_dir: Path) -> Recorded:
-        from ipmc_driver.dataio import load_record
+        from ipmc_driver.dataio import ImplausibleDataWarning, load_record
 
         out_dir.mkdir(parents=True, exist_ok=True)
         bag = out_dir / "bag"
@@ -478,6 +479,9 @@ class GraphRunner:
         # a loaded machine or a rig's link loses samples: kept as rows not measured
         rec = load_record(bag, gaps=True, notes=notes)
         lost = next((n.rstrip(".") for n in notes if "not measured" in n), None)
+        for note in notes:
+            if "not measured" not in note:
+                warnings.warn(note, ImplausibleDataWarning, stacklevel=2)
         return Recorded(rec.t_s - rec.t_s[0], rec.u_v, rec.y_mm, bag, lost=lost)
 
 

@@ -118,9 +118,11 @@ def check_record(record: Record, *, source: str = "record", min_samples: int = M
         measured = " measured" if missing_y else ""
         raise DataError(f"{source} has too few{measured} samples: {n}, need at least "
                         f"{min_samples}.")
-    for name, unit in (("t_s", "s"), ("u_v", "V"), ("y_mm", "mm"))[:2 if missing_y else 3]:
+    for name, unit in (("t_s", "s"), ("u_v", "V"), ("y_mm", "mm")):
         arr = getattr(record, name)
-        bad = np.flatnonzero(~np.isfinite(arr))
+        # with missing_y, NaN in y is a sample not measured; inf is never a measurement
+        bad = np.flatnonzero(np.isinf(arr) if missing_y and name == "y_mm"
+                             else ~np.isfinite(arr))
         if bad.size:
             i = int(bad[0])
             raise DataError(
@@ -188,6 +190,7 @@ def fill_gaps(record: Record, *, source: str = "record",
     n = int(rows[-1]) + 1
     u, y = np.full(n, np.nan), np.full(n, np.nan)
     u[rows], y[rows] = record.u_v, record.y_mm
+    y[np.isnan(u)] = np.nan   # its voltage lost: not a measurement the models can be fitted to
     held = np.maximum.accumulate(np.where(np.isfinite(u), np.arange(n), 0))
     filled = Record(t[0] + np.arange(n) * med, u[held], y)
     lost = int(np.sum(~np.isfinite(y)))
@@ -195,8 +198,9 @@ def fill_gaps(record: Record, *, source: str = "record",
         return filled, None
     gaps = steps[steps > 1]
     i = int(np.argmax(steps))
-    note = (f"{source}: {lost} of {n} samples were not measured ({gaps.size} gap(s), the "
-            f"longest {(steps[i] - 1) * med:.3g} s after t = {t[i]:.6g} s); they are kept as "
+    where = (f" ({gaps.size} gap(s), the longest {(steps[i] - 1) * med:.3g} s after t = "
+             f"{t[i]:.6g} s)" if gaps.size else "")
+    note = (f"{source}: {lost} of {n} samples were not measured{where}; they are kept as "
             f"rows without a displacement, the voltage held")
     return filled, note
 

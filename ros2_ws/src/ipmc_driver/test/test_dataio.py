@@ -218,16 +218,17 @@ def test_a_bag_that_lost_samples_loads_with_them_as_rows_not_measured(tmp_path):
     notes: list[str] = []
     rec = load_record(bag, gaps=True, notes=notes)
     assert_allclose(rec.t_s, np.arange(30) * 0.01, atol=1e-9)
-    lost = [7, 8, 9, 14]
+    # a sample whose voltage was lost is not measured either: its input is not known
+    lost = [7, 8, 9, 14, 17]
     assert np.flatnonzero(np.isnan(rec.y_mm)).tolist() == lost
     measured = np.delete(np.arange(30), lost)
     assert_allclose(rec.y_mm[measured], measured * 0.1)
     # the voltage is held through a loss; a sample's own voltage is kept where it came
     assert_allclose(rec.u_v[[7, 8, 9]], 0.6) and rec.u_v[14] == pytest.approx(1.4)
     assert rec.u_v[17] == pytest.approx(1.6)
-    assert len(notes) == 1 and "4 of 30 samples were not measured" in notes[0]
+    assert len(notes) == 1 and "5 of 30 samples were not measured" in notes[0]
     assert "the longest 0.03 s after t = 0.06 s" in notes[0]
-    with pytest.warns(LostSamplesWarning, match="4 of 30 samples were not measured"):
+    with pytest.warns(LostSamplesWarning, match="5 of 30 samples were not measured"):
         load_record(bag, gaps=True)
     with pytest.raises(DataError, match="no /ipmc/displacement"):
         load_record(bag)

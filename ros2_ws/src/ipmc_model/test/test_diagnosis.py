@@ -69,7 +69,9 @@ def test_the_power_of_the_held_out_test_follows_its_standard_error():
     rng = np.random.default_rng(2)
     slow = np.convolve(rng.normal(size=3000), np.ones(40) / 40, mode="same")
     test = loss_differential_test(slow + 0.01, slow, 0.0)
-    assert test.standard_error_mm2 > 0
+    n = slow.size   # the standard error is the one the statistic divides by
+    assert test.mean_gain_mm2 / test.standard_error_mm2 * np.sqrt((n - 1) / n) == \
+        pytest.approx(test.statistic)
     assert power(test, 0.0, 0.05) == pytest.approx(0.05)
     assert power(test, 4.0 * test.standard_error_mm2, 0.05) > 0.9
     assert power(test, 1.0 * test.standard_error_mm2, 0.05) < 0.3

@@ -179,7 +179,8 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
         ev = replace(ev, p_holm=p_adj.get(name, 1.0))
         outcome, reason = _verdict(name, ev, best, passing, cfg.family_alpha, untestable)
         res = CandidateResult(name, outcome, reason, number, ev)
-        short = (_too_few(res, cfg, len(p_adj), rec, current)
+        family = sum(n not in untestable for n in p_adj)   # Holm's family: testable only
+        short = (_too_few(res, cfg, family, rec, current)
                  if outcome is Outcome.REJECTED and name not in passing else None)
         results[name] = (replace(res, outcome=Outcome.NOT_TESTABLE, reason=f"{short} ({reason})")
                          if short else res)
@@ -195,7 +196,8 @@ def _too_few(res: CandidateResult, cfg: DiagnosisConfig, family: int, rec: Diagn
     at the gain they show is below ``min_power``), if they cannot and a probe can; None if
     the rejection stands."""
     sc, t = res.evidence.screen, res.evidence.test
-    if not (sc.passed and t.mean_gain_mm2 > 0 and sc.mean_gain_mm2 > 0):
+    # a gain below the materiality margin is rejected however many rows there were
+    if not (sc.passed and t.mean_gain_mm2 > 0 and sc.mean_gain_mm2 >= t.margin_mm2):
         return None
     level = cfg.family_alpha / max(1, family)   # Holm's first step
     pw = power(t, sc.mean_gain_mm2, level)
