@@ -138,14 +138,23 @@ def clean_twin(inv: Investigation, rate_hz: float, seed: int, together: bool
     """The clean plant under the last round's input (every round's, ``together``), the same
     seeds, diagnosed as the investigation's last round was: the final held-out error and what
     it found there."""
+    first = 0 if together else len(inv.rounds) - 1
+    d = clean_diagnosis([(f"round {i + 1}", rnd.played.u_v, seed + i, ())
+                         for i, rnd in enumerate(inv.rounds[first:], start=first)],
+                        1.0 / rate_hz)
+    return d.rmse_after_mm, d.effects_found
+
+
+def clean_diagnosis(runs, dt_s: float):
+    """The clean simulated IPMC under each run's voltages ``(name, u_v, seed, parts)``, the
+    records diagnosed together."""
     from ipmc_driver.plant import IpmcPlant
 
-    records, first = [], 0 if together else len(inv.rounds) - 1
-    for i, rnd in enumerate(inv.rounds[first:], start=first):
-        run = IpmcPlant(effects=(), seed=seed + i, dt_s=1.0 / rate_hz).run(rnd.played.u_v)
-        records.append((f"round {i + 1}", run.t_s, run.u_v, run.y_mm))
-    d = diagnose_records(records)
-    return d.rmse_after_mm, d.effects_found
+    records = []
+    for name, u_v, seed, parts in runs:
+        run = IpmcPlant(effects=(), seed=seed, dt_s=dt_s).run(u_v)
+        records.append((name, run.t_s, run.u_v, run.y_mm, parts))
+    return diagnose_records(records)
 
 
 def run_case(case: Case, rate_hz: float, seed: int, out: Path, together: bool = False,
@@ -198,7 +207,6 @@ def twin_of(report: Path, seed: int) -> list[str]:
     import json
 
     from ipmc_driver.dataio import load_record
-    from ipmc_driver.plant import IpmcPlant
     from ipmc_model.diagnosis.experiment import played_parts, read_experiment
 
     summary = json.loads((report / "summary.json").read_text())
@@ -208,8 +216,7 @@ def twin_of(report: Path, seed: int) -> list[str]:
     if any(part["effect"] for part in last["experiment"]["parts"]):   # a proposed experiment
         planned, u_plan, _ = read_experiment(last["experiment"]["path"])
         parts = played_parts(planned, u_plan, rec.u_v, rec.dt_s)
-    run = IpmcPlant(effects=(), seed=seed, dt_s=rec.dt_s).run(rec.u_v)
-    d = diagnose_records([("clean twin", run.t_s, run.u_v, run.y_mm, parts)])
+    d = clean_diagnosis([("clean twin", rec.u_v, seed, parts)], rec.dt_s)
     after = summary["rmse_after_mm"]
     return [f"{report}: found {', '.join(summary['effects_found']) or 'nothing'}; after "
             f"{after:.4f} mm, clean twin {d.rmse_after_mm:.4f} mm (found there: "

@@ -488,25 +488,21 @@ def _pair(path: Path, volts: dict[int, float], metres_mm: dict[int, float],
                         f"the same header stamp.")
     first, last = common[0], common[-1]
     paired = set(common)
-    if keep_unpaired:
+    if keep_unpaired:   # the other value NaN
         common = sorted(s for s in volts.keys() | metres_mm.keys() if first <= s <= last)
-        stamps = np.array(common, dtype=np.int64)
-        return Record((stamps - stamps[0]) * 1e-9,
-                      np.array([volts.get(s, np.nan) for s in common]),
-                      np.array([metres_mm.get(s, np.nan) for s in common]))
     # A recording starts and stops between the two messages of one sampling instant; an
     # unpaired sample inside the span means a message was lost.
     for topic, store in ((voltage_topic, volts), (displacement_topic, metres_mm)):
         inner = [s for s in store if first < s < last and s not in paired]
-        if inner:
+        if inner and not keep_unpaired:
             other = displacement_topic if topic == voltage_topic else voltage_topic
             raise DataError(
                 f"{path} has {len(inner)} {topic} sample(s) with no {other} sample of the same "
                 f"stamp, the first at t = {(min(inner) - first) * 1e-9:.6g} s.")
     stamps = np.array(common, dtype=np.int64)
     t_s = (stamps - stamps[0]) * 1e-9
-    return Record(t_s, np.array([volts[s] for s in common]),
-                  np.array([metres_mm[s] for s in common]))
+    return Record(t_s, np.array([volts.get(s, np.nan) for s in common]),
+                  np.array([metres_mm.get(s, np.nan) for s in common]))
 
 
 def write_atomic(files: dict[str | os.PathLike, bytes | str]) -> list[Path]:
