@@ -239,6 +239,34 @@ def test_fan_out_keeps_order_runs_closures_and_does_not_nest():
         pass
 
 
+@pytest.mark.timeout(30)   # a hang is the failure: the pool waited forever for its workers
+def test_fan_out_ends_its_workers_while_a_ros_context_is_live():
+    """rclpy's SIGTERM handler, which a fork inherits, kept a pool's idle worker from ending
+    when the pool was torn down; the pool must end its workers after the work and after a
+    failing item."""
+    import rclpy
+
+    from ipmc_model.diagnosis.parallel import fan_out, using
+
+    def fails_on_one(k):
+        if k == 1:
+            raise RuntimeError("fit failed")
+        return k
+
+    owned = not rclpy.ok()   # the default context: the one whose init installs the handlers
+    if owned:
+        rclpy.init()
+    try:
+        with using(2):
+            for _ in range(10):   # the hang was a race between a worker's end and the signal
+                assert fan_out(lambda k: k * 2, [1, 2, 3]) == [2, 4, 6]
+            with pytest.raises(RuntimeError, match="fit failed"):
+                fan_out(fails_on_one, [0, 1, 2, 3])
+    finally:
+        if owned:
+            rclpy.shutdown()
+
+
 def test_a_diagnosis_on_two_workers_is_the_one_in_process():
     rec = plant_record({"dead_zone": {"width_v": 0.4}}, 100.0, 2)
     names = ["drift", "dead_zone"]

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -66,8 +67,15 @@ def fan_out(fn: Callable[[T], R], items: Iterable[T], costs=None) -> list[R]:
              else list(range(len(items))))
     _WORK = (fn, items)
     try:
-        with multiprocessing.get_context("fork").Pool(jobs, initializer=_one_thread) as pool:
+        pool = multiprocessing.get_context("fork").Pool(jobs, initializer=_worker_start)
+        try:
             done = pool.map(_run, order, chunksize=1)
+            pool.close()     # idle workers leave on the end-of-work message, not on a signal
+        except BaseException:
+            pool.terminate()
+            raise
+        finally:
+            pool.join()
     finally:
         _WORK = None
     out: list = [None] * len(items)
@@ -76,7 +84,12 @@ def fan_out(fn: Callable[[T], R], items: Iterable[T], costs=None) -> list[R]:
     return out
 
 
-def _one_thread() -> None:
+def _worker_start() -> None:
+    """One BLAS thread; the default end on SIGTERM and Ctrl-C left to the parent. A fork
+    inherits the parent's signal handlers: a live ROS context's SIGTERM handler would keep
+    the worker alive when the pool ends it, and the parent would wait for it forever."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     threadpool_limits(1)
 
 
