@@ -2,7 +2,7 @@
 
 * :mod:`.record` - the record, its fit / held-out split and what its excitation can show;
 * :mod:`.candidates` - one class per candidate effect and the registry :data:`CANDIDATES`;
-* :mod:`.decision` - the one decision rule (forecast encompassing, Holm, materiality);
+* :mod:`.decision` - the one decision rule (Diebold-Mariano, Holm, materiality);
 * :mod:`.search` - rounds of candidates around the current model;
 * :mod:`.experiment` - the next experiment: an excitation that decides what was not testable;
 * :mod:`.results` - typed evidence and outcomes; :mod:`.report` - files, deciding nothing;

@@ -3,31 +3,25 @@
 A candidate block is accepted when adding it to the current model (both fitted on the same
 fit rows) lowers the held-out free-run squared error significantly and materially:
 
-* over the held-out samples (those within the fit part's voltage range,
-  :meth:`DiagnosisRecord.judged_for`: on a record played from a proposed experiment, the rows
-  of the effect's own probe), the current model's error ``e_cur`` and the change the block
-  makes to the free run, ``delta = e_cur - e_new``, are tested for forecast encompassing
-  (Harvey, Leybourne & Newbold 1998): the mean of ``c_k = e_cur_k delta_k`` over a HAC
-  (Bartlett, Newey-West) standard error, with their small-sample factor, one-sided against
-  Student's t; the bandwidth covers the product's own autocorrelation (a free-run error is
-  slow, so its samples are far from independent). The candidate nests the current model (a
-  block at zero reproduces it), and for nested models the loss differential
-  ``d_k = e_cur_k^2 - e_new_k^2 = 2 c_k - delta_k^2`` is the wrong statistic to centre at
-  zero: under the null it carries the larger model's estimation noise ``-delta^2``, so its
-  Diebold-Mariano test is undersized and weak (Clark & McCracken 2001);
+* the loss differential ``d_k = e_cur_k^2 - e_new_k^2`` over the held-out samples (those
+  within the fit part's voltage range, :meth:`DiagnosisRecord.judged_for`: on a record
+  played from a proposed experiment, the rows of the effect's own probe) is tested by
+  Diebold-Mariano: its mean over a HAC (Bartlett, Newey-West) standard error, with the
+  Harvey-Leybourne-Newbold small-sample factor, one-sided against Student's t; the bandwidth
+  covers the differential's own autocorrelation (a free-run error is slow, so its samples are
+  far from independent);
 * the round's p-values are adjusted by Holm's step-down, holding the family-wise error of
   the candidates the round may accept (the testable ones) at ``family_alpha``;
-* the mean loss differential (the gain) must be at least ``material_noise_share`` times the
-  noise floor squared: the block must lower the held-out error, not only explain part of it.
+* the mean gain must be at least ``material_noise_share`` times the noise floor squared.
 
 A candidate the rule does not accept, whose block the fit rows support and whose held-out
 gain has the right sign, is undecided rather than rejected when the held-out rows are too
 few to decide it: when the test would pass with less than ``min_power`` probability at the
-gain the fit rows show (:func:`power`, at Holm's first level; on the rows a model was fitted
-on, ``c`` and ``d`` agree, both the block's ``delta^2``). A record with its probe decides it.
+gain the fit rows show (:func:`power`, at Holm's first level). A record with its probe
+decides it.
 
 Of the candidates that pass, the round accepts the one with the largest mean gain; the next
-round refits the rest around it. Written by hand: SciPy has no encompassing test and the
+round refits the rest around it. Written by hand: SciPy has no Diebold-Mariano test and the
 project does not depend on statsmodels for one HAC variance.
 """
 
@@ -59,17 +53,13 @@ def decorrelation_lag(d: np.ndarray) -> int:
     return int(inside[0]) if inside.size else n - 1
 
 
-def encompassing_test(e_current, e_candidate, margin_mm2: float) -> LossTest:
-    """One-sided test that the candidate's change of the free run explains the current
-    model's held-out error (forecast encompassing, for a candidate that nests the current
-    model), with the mean loss differential it brings."""
-    e_cur = np.asarray(e_current, float)
-    delta = e_cur - np.asarray(e_candidate, float)
-    c = e_cur * delta
-    n = c.size
-    mean = float(c.mean())
-    lag = min(max(newey_west_lag(n), decorrelation_lag(c)), n // 4)
-    x = c - mean
+def loss_differential_test(e_current, e_candidate, margin_mm2: float) -> LossTest:
+    """Diebold-Mariano test that the candidate's squared held-out error is lower."""
+    d = np.asarray(e_current, float) ** 2 - np.asarray(e_candidate, float) ** 2
+    n = d.size
+    mean = float(d.mean())
+    lag = min(max(newey_west_lag(n), decorrelation_lag(d)), n // 4)
+    x = d - mean
     acov = correlate(x, x, mode="full", method="fft")[n - 1:n + lag] / n
     weights = 1.0 - np.arange(1, lag + 1) / (lag + 1.0)
     var = float(acov[0] + 2.0 * np.sum(weights * acov[1:lag + 1]))
@@ -79,14 +69,13 @@ def encompassing_test(e_current, e_candidate, margin_mm2: float) -> LossTest:
         stat = mean / math.sqrt(var / n) * math.sqrt((n - 1.0) / n)  # HLN factor, horizon 1
     p = float(stats.t.sf(stat, df=n - 1))
     se = math.sqrt(var / n) if var > 0 else 0.0
-    gain = float(np.mean(2.0 * c - delta ** 2))   # e_cur^2 - e_new^2
-    return LossTest(gain, float(stat), p, int(lag), float(margin_mm2), se, mean)
+    return LossTest(mean, float(stat), p, int(lag), float(margin_mm2), se)
 
 
 def power(test: LossTest, expected_gain_mm2: float, alpha: float) -> float:
     """Probability that the one-sided test at level ``alpha`` passes on these held-out rows
-    when the mean explained error is ``expected_gain_mm2``, with the test's own standard
-    error (normal approximation)."""
+    when the mean gain is ``expected_gain_mm2``, with the test's own standard error (normal
+    approximation)."""
     se = test.standard_error_mm2
     if not se > 0:
         return 1.0

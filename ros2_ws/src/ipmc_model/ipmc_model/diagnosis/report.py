@@ -24,11 +24,9 @@ RULE = ("An effect is accepted when the current model with its block, fitted on 
         "(those within the fit rows' voltage range for the last {settle:g} s; on a record "
         "played from a proposed experiment, an effect with its own probe there is judged on "
         "that probe's rows, the other probes showing other effects): the "
-        "forecast-encompassing test that the block's change of the free run explains the "
-        "current model's error (the candidate nests the current model; HAC variance, Bartlett "
-        "kernel, bandwidth covering the product's own autocorrelation, "
-        "Harvey-Leybourne-Newbold factor, one-sided), Holm's step-down at a family-wise "
-        "{alpha:g} over the round's testable "
+        "Diebold-Mariano test of the loss differential (HAC variance, Bartlett kernel, bandwidth "
+        "covering the differential's own autocorrelation, Harvey-Leybourne-Newbold factor, "
+        "one-sided), Holm's step-down at a family-wise {alpha:g} over the round's testable "
         "candidates that the fit rows support (their block lowers the fit rows' free-run "
         "squared error by a likelihood ratio, at the residual's effective sample size, above "
         "chi2 of its parameter count at {alpha:g}; decided without the held-out rows, this "
@@ -164,8 +162,8 @@ def markdown(d: Diagnosis, s: dict, label: str, figure: str | None) -> str:
     for rnd in d.rounds:
         lines += [f"## Round {rnd.number} (from {rnd.rmse_start_mm:.4f} mm): "
                   f"{'accepted ' + rnd.accepted if rnd.accepted else 'nothing accepted'}", "",
-                  "| effect | outcome | RMSE with it (mm) | mean gain (mm^2) | encompassing p | "
-                  "Holm p | parameters |", "|---|---|---|---|---|---|---|"]
+                  "| effect | outcome | RMSE with it (mm) | mean gain (mm^2) | DM p | Holm p | "
+                  "parameters |", "|---|---|---|---|---|---|---|"]
         for r in rnd.results:
             ev = r.evidence
             params = "" if ev is None else ", ".join(

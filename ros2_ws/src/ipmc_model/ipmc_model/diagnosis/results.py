@@ -24,18 +24,15 @@ class Outcome(StrEnum):
 @dataclass(frozen=True)
 class LossTest:
     """The held-out free-run loss differential d_k = e_current_k^2 - e_candidate_k^2 (mm^2)
-    and the forecast-encompassing test of the error the candidate explains,
-    c_k = e_current_k (e_current_k - e_candidate_k) (HAC variance, one-sided)."""
+    and its Diebold-Mariano test (HAC variance, one-sided: the candidate has less loss)."""
 
     mean_gain_mm2: float
     statistic: float
     p_value: float
     bandwidth_samples: int
     margin_mm2: float
-    #: The HAC standard error of the mean of c (mm^2): what the test's power follows.
+    #: The mean gain's HAC standard error (mm^2): what the test's power follows.
     standard_error_mm2: float = float("nan")
-    #: The mean of c (mm^2): the statistic's numerator.
-    mean_explained_mm2: float = float("nan")
 
     @property
     def material(self) -> bool:
