@@ -492,9 +492,10 @@ def _pair(path: Path, volts: dict[int, float], metres_mm: dict[int, float],
         common = sorted(s for s in volts.keys() | metres_mm.keys() if first <= s <= last)
     # A recording starts and stops between the two messages of one sampling instant; an
     # unpaired sample inside the span means a message was lost.
-    for topic, store in ((voltage_topic, volts), (displacement_topic, metres_mm)):
+    for topic, store in (() if keep_unpaired else ((voltage_topic, volts),
+                                                   (displacement_topic, metres_mm))):
         inner = [s for s in store if first < s < last and s not in paired]
-        if inner and not keep_unpaired:
+        if inner:
             other = displacement_topic if topic == voltage_topic else voltage_topic
             raise DataError(
                 f"{path} has {len(inner)} {topic} sample(s) with no {other} sample of the same "

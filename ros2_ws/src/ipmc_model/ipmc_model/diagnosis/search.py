@@ -175,11 +175,11 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
     p_adj.update({n: ev.test.p_value for n, ev in screened.items() if n in untestable})
     passing = [n for n in screened if passes(tested[n][1].test, p_adj[n], cfg.family_alpha)]
     best = max(passing, key=lambda n: tested[n][1].test.mean_gain_mm2, default=None)
+    family = sum(n not in untestable for n in p_adj)   # Holm's family: testable only
     for name, (_, ev) in tested.items():
         ev = replace(ev, p_holm=p_adj.get(name, 1.0))
         outcome, reason = _verdict(name, ev, best, passing, cfg.family_alpha, untestable)
         res = CandidateResult(name, outcome, reason, number, ev)
-        family = sum(n not in untestable for n in p_adj)   # Holm's family: testable only
         short = (_too_few(res, cfg, family, rec, current)
                  if outcome is Outcome.REJECTED and name not in passing else None)
         results[name] = (replace(res, outcome=Outcome.NOT_TESTABLE, reason=f"{short} ({reason})")
