@@ -366,6 +366,59 @@ def test_a_new_effect_is_one_class_and_one_registry_line():
         CANDIDATES.pop("gain_change")
 
 
+class Weakening(GainChange):
+    """A toy effect whose physical range is a bending that weakened (a gain below 1)."""
+
+    name = "weakening"
+
+    def refine(self, before, after, rec, given):
+        from ipmc_model.diagnosis.candidates import Refined
+
+        p = self.around(before, rec.whole()).params
+        return Refined(p, outside=None if p["gain"] < 1.0 else "the bending grew")
+
+
+def test_an_accepted_effect_estimated_outside_its_range_is_rejected_and_the_rest_judged():
+    from ipmc_model.diagnosis import register
+
+    register(Weakening)
+    try:
+        day1 = plant_record({}, 120.0, 4)
+        model = core_model(DiagnosisRecord(day1.t_s, day1.u_v, day1.y_mm, DiagnosisConfig()))
+        day2 = plant_record({}, 120.0, 5)
+        grown = diagnose(Record(day2.t_s, day2.u_v, 1.25 * day2.y_mm), model=model,
+                         candidates=["weakening", "drift"])
+        first = next(r for r in grown.rounds[0].results if r.name == "weakening")
+        assert first.outcome is Outcome.REJECTED and "the bending grew" in first.reason
+        assert first.evidence.params["gain"] == pytest.approx(1.25, abs=0.05)
+        assert "weakening" not in grown.effects_found and grown.rounds[0].accepted is None
+        # the rest are judged again around the model the round started from
+        assert [r.name for r in grown.rounds[1].results] == ["drift"]
+        weak = diagnose(Record(day2.t_s, day2.u_v, 0.8 * day2.y_mm), model=model,
+                        candidates=["weakening", "drift"])
+        assert weak.effects_found[:1] == ["weakening"]
+    finally:
+        CANDIDATES.pop("weakening")
+
+
+def test_a_creep_whose_relaxation_is_faster_than_a_creep_is_outside_its_range():
+    """The creep's time constant is estimated below the creep's range too: a relaxation
+    faster than ``creep_min_tau_s`` that the test's bank took up is not named creep."""
+    from ipmc_model.hysteresis import GeneralizedPI
+
+    day1 = plant_record({}, 240.0, 4, holds=True)
+    model = GeneralizedPI(dt_s=1 / RATE).fit(day1.u_v, day1.y_mm)
+    creep = CANDIDATES["creep"]
+    found = {}
+    for tau_s in (4.0, 20.0):
+        day2 = plant_record({"creep": {"tau_s": tau_s, "gain_mm_per_v": -0.4}}, 240.0, 5,
+                            holds=True)
+        rec = DiagnosisRecord(day2.t_s, day2.u_v, day2.y_mm, DiagnosisConfig())
+        found[tau_s] = creep.refine(model, model, rec, given=True)
+    assert found[4.0].params["tau_s"] < 10.0 and "faster than a creep" in found[4.0].outside
+    assert found[20.0].outside is None and found[20.0].params["tau_s"] > 10.0
+
+
 def test_cli_writes_the_report_and_a_model_that_runs(tmp_path, capsys):
     data = save_csv(plant_record({"delay": {"delay_s": 0.2}}, 150.0, 6), tmp_path / "d.csv")
     out = tmp_path / "report"

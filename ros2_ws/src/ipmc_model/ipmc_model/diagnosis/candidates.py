@@ -52,10 +52,13 @@ class Fitted:
 @dataclass(frozen=True)
 class Refined:
     """An accepted effect's costlier estimate: its parameters with 95 % intervals (they
-    replace the round's) and, if it replaces the accepted model, the model they describe."""
+    replace the round's) and, if it replaces the accepted model, the model they describe.
+    ``outside``: why the estimate lies outside the effect's physical range, if it does: the
+    block then took up something the effect does not describe, and the effect is rejected."""
 
     params: dict
     model: GeneralizedPI | None = None
+    outside: str | None = None
 
 
 class Candidate:
@@ -352,11 +355,22 @@ class Creep(Candidate):
         # tau); the creep the diagnosis reports is one relaxation, and the model after it is
         # that relaxation at the estimated tau (three free gains would also take up the slow
         # part of the model's misfit)
+        # that relaxation's likelihood is traced below the creep's range too, so that its
+        # interval can close there: a best fit below it is a faster relaxation (the charging
+        # and the memory the core holds), which the test's bank took up in part, not a creep
         if given:
-            return Refined({**creep_estimate(before, rec.whole()), "interval": "whole record"})
-        params, single = creep_profile(before, rec)
-        return Refined({**params, "taus_s": [float(single.output_taus_s[-1])],
-                        "gains_mm_per_v": [float(single.output_coef_[-1])]}, single)
+            params = {**creep_estimate(before, rec.whole()), "interval": "whole record"}
+            single = None
+        else:
+            params, single = creep_profile(before, rec)
+            params = {**params, "taus_s": [float(single.output_taus_s[-1])],
+                      "gains_mm_per_v": [float(single.output_coef_[-1])]}
+        low = rec.config.creep_min_tau_s
+        outside = (None if params["tau_s"] >= low else
+                   f"estimated on every row its relaxation is faster than a creep (tau "
+                   f"{params['tau_s']:.3g} s < {low:g} s): the block took up a fast misfit of "
+                   f"the model, not a creep")
+        return Refined(params, single, outside)
 
 
 def warm_refit(model: GeneralizedPI, rec: DiagnosisRecord, **attrs) -> GeneralizedPI:

@@ -241,6 +241,19 @@ def _with_params(rnd: Round, params: dict) -> Round:
     return replace(rnd, results=tuple(update(r) for r in rnd.results))
 
 
+def _withdrawn(rnd: Round, refined) -> Round:
+    """``rnd`` with its accepted candidate rejected: its estimate on every row
+    (``refined``) lies outside the effect's physical range."""
+    def update(r: CandidateResult) -> CandidateResult:
+        if r.name != rnd.accepted:
+            return r
+        ev = replace(r.evidence, params={**r.evidence.params, **refined.params})
+        return replace(r, outcome=Outcome.REJECTED, evidence=ev,
+                       reason=f"{r.reason}; {refined.outside}")
+    return replace(rnd, results=tuple(update(r) for r in rnd.results),
+                   accepted=None)
+
+
 def with_known(current: GeneralizedPI, rec: DiagnosisRecord, known: list[str], given: bool,
                say) -> tuple[GeneralizedPI, tuple[str, ...]]:
     """``current`` with the blocks of the ``known`` effects fitted on the fit rows (each as its
@@ -325,15 +338,19 @@ def _diagnose_records(records, model, config, candidates, progress, known) -> Di
         d.rounds.append(rnd)
         if fitted is None:
             break
-        say(f"round {number}: accepted {rnd.accepted}")
         refined = CANDIDATES[rnd.accepted].refine(current, fitted.model, rec, given)
+        names.remove(rnd.accepted)
+        if refined is not None and refined.outside:
+            say(f"round {number}: {rnd.accepted} rejected: {refined.outside}")
+            d.rounds[-1] = _withdrawn(rnd, refined)
+            continue   # the rest are judged again around the same model
+        say(f"round {number}: accepted {rnd.accepted}")
         current = fitted.model
         if refined is not None:
             d.rounds[-1] = _with_params(rnd, refined.params)
             current = refined.model or current
         if not given:   # a given model stays frozen; the own model is the next start
             current = converged(current, rec)
-        names.remove(rnd.accepted)
     d.model_after = current
     d.next_experiment = design_experiment(d, rec)
     d.seconds = time.perf_counter() - t0
