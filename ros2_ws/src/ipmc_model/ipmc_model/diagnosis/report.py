@@ -38,7 +38,9 @@ RULE = ("An effect is accepted when the current model with its block, fitted on 
         "record. A candidate that does not pass but whose block the fit rows support, with a "
         "positive held-out gain, is undecided (not rejected) when the test would pass with "
         "less than {power:.0%} probability at the gain the fit rows show: the held-out rows "
-        "are too few to decide it, and its probe is proposed.")
+        "are too few to decide it, and its probe is proposed. An accepted effect whose "
+        "parameter, re-estimated on every row, lies outside the effect's physical range (a "
+        "creep faster than {creep_min:g} s) is rejected: its block took up something else.")
 
 
 def check_report_dir(out_dir) -> Path:
@@ -84,7 +86,7 @@ def summary_of(d: Diagnosis, paths: dict) -> dict:
         "noise_floor_mm": d.noise_floor_mm,
         "metric": METRIC.format(held=100 * (1 - c.fit_share)),
         "rule": RULE.format(alpha=c.family_alpha, share=c.material_noise_share, margin=margin,
-                            settle=c.settle_s, power=c.min_power),
+                            settle=c.settle_s, power=c.min_power, creep_min=c.creep_min_tau_s),
         "given_model": d.given_model,
         "known_effects": list(d.known),
         "candidates": [r.as_dict() for r in d.candidates],
