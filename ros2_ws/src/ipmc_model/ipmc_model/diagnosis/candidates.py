@@ -354,10 +354,9 @@ class Creep(Candidate):
         # bank of fixed time constants is the test's device (a refit without a search over
         # tau); the creep the diagnosis reports is one relaxation, and the model after it is
         # that relaxation at the estimated tau (three free gains would also take up the slow
-        # part of the model's misfit)
-        # that relaxation's likelihood is traced below the creep's range too, so that its
-        # interval can close there: a best fit below it is a faster relaxation (the charging
-        # and the memory the core holds), which the test's bank took up in part, not a creep
+        # part of the model's misfit). Its likelihood is traced below the creep's range too,
+        # so that its interval can close there: a best fit below it is a faster relaxation
+        # (the charging and the memory the core holds) the test's bank took up, not a creep
         if given:
             params = {**creep_estimate(before, rec.whole()), "interval": "whole record"}
             single = None

@@ -338,6 +338,7 @@ def _diagnose_records(records, model, config, candidates, progress, known) -> Di
         d.rounds.append(rnd)
         if fitted is None:
             break
+        say(f"round {number}: {rnd.accepted} passed; estimating it on every row")
         refined = CANDIDATES[rnd.accepted].refine(current, fitted.model, rec, given)
         names.remove(rnd.accepted)
         if refined is not None and refined.outside:
