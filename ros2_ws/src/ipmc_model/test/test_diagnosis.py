@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import json
 import os
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -349,21 +350,28 @@ class GainChange(Candidate):
         return Fitted(m, {"gain": k})
 
 
-def test_a_new_effect_is_one_class_and_one_registry_line():
+@contextmanager
+def toy_effect(cls):
+    """``cls`` registered for the block's duration, and a clean day's core model and a later
+    day's record (its displacement to be scaled by the test)."""
     from ipmc_model.diagnosis import register
 
-    register(GainChange)
+    register(cls)
     try:
         day1 = plant_record({}, 120.0, 4)
-        model = core_model(DiagnosisRecord(day1.t_s, day1.u_v, day1.y_mm, DiagnosisConfig()))
-        day2 = plant_record({}, 120.0, 5)
+        yield (core_model(DiagnosisRecord(day1.t_s, day1.u_v, day1.y_mm, DiagnosisConfig())),
+               plant_record({}, 120.0, 5))
+    finally:
+        CANDIDATES.pop(cls.name)
+
+
+def test_a_new_effect_is_one_class_and_one_registry_line():
+    with toy_effect(GainChange) as (model, day2):
         day2 = Record(day2.t_s, day2.u_v, 0.8 * day2.y_mm)
         d = diagnose(day2, model=model, candidates=["gain_change", "drift", "delay"])
         assert d.effects_found[:1] == ["gain_change"]
         found = next(r for r in d.candidates if r.name == "gain_change")
         assert found.evidence.params["gain"] == pytest.approx(0.8, abs=0.05)
-    finally:
-        CANDIDATES.pop("gain_change")
 
 
 class Weakening(GainChange):
@@ -379,13 +387,7 @@ class Weakening(GainChange):
 
 
 def test_an_accepted_effect_estimated_outside_its_range_is_rejected_and_the_rest_judged():
-    from ipmc_model.diagnosis import register
-
-    register(Weakening)
-    try:
-        day1 = plant_record({}, 120.0, 4)
-        model = core_model(DiagnosisRecord(day1.t_s, day1.u_v, day1.y_mm, DiagnosisConfig()))
-        day2 = plant_record({}, 120.0, 5)
+    with toy_effect(Weakening) as (model, day2):
         grown = diagnose(Record(day2.t_s, day2.u_v, 1.25 * day2.y_mm), model=model,
                          candidates=["weakening", "drift"])
         first = next(r for r in grown.rounds[0].results if r.name == "weakening")
@@ -394,11 +396,10 @@ def test_an_accepted_effect_estimated_outside_its_range_is_rejected_and_the_rest
         assert "weakening" not in grown.effects_found and grown.rounds[0].accepted is None
         # the rest are judged again around the model the round started from
         assert [r.name for r in grown.rounds[1].results] == ["drift"]
+        assert grown.rounds[1].rmse_start_mm == grown.rounds[0].rmse_start_mm
         weak = diagnose(Record(day2.t_s, day2.u_v, 0.8 * day2.y_mm), model=model,
                         candidates=["weakening", "drift"])
         assert weak.effects_found[:1] == ["weakening"]
-    finally:
-        CANDIDATES.pop("weakening")
 
 
 def test_a_creep_whose_relaxation_is_faster_than_a_creep_is_outside_its_range():
