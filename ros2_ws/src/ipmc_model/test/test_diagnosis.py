@@ -308,6 +308,21 @@ def test_a_given_model_gets_the_block_of_what_changed_fitted_around_it():
     assert d.rmse_after_mm < 0.5 * d.rmse_before_mm
 
 
+def test_rate_dependence_is_a_charging_current_channel_found_with_its_gain():
+    """The plant's bending on top of the charge, 0.1 mm per V/s of its charging current: the
+    own model and a clean day's given model each get one gain for it."""
+    fx = {"rate_dependence": {"gain_mm_per_v_per_s": 0.1}}
+    day1 = plant_record({}, 150.0, 4)
+    given = core_model(DiagnosisRecord(day1.t_s, day1.u_v, day1.y_mm, DiagnosisConfig()))
+    rec = plant_record(fx, 150.0, 7)
+    for model in (None, given):
+        d = diagnose(rec, model=model)
+        assert d.effects_found[:1] == ["rate_dependence"]
+        p = next(r for r in d.candidates if r.name == "rate_dependence").evidence.params
+        assert p["gain_mm_per_v_per_s"] == pytest.approx(0.1, abs=0.025)
+        assert d.rmse_after_mm < 0.5 * d.rmse_before_mm
+
+
 def test_creep_around_a_given_model_with_slow_input_memory_is_one_relaxation():
     """Another day's model of ipmc identify's default family (input memory up to 36 s):
     creep that came since is still testable around it, fitted as one relaxation, and its

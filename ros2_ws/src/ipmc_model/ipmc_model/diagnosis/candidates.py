@@ -30,8 +30,6 @@ from ..hysteresis import (
     GeneralizedPI,
     dead_zone,
     estimate_delay,
-    hinge_basis,
-    hinge_slope,
     lowpass_bank,
 )
 from .experiment import Probe, crossings, holds, probe_level_v
@@ -168,48 +166,6 @@ def descend_delay(model: GeneralizedPI, rec: DiagnosisRecord, start: int, lo: in
         d = min(better, key=err)
     tried = ", ".join(f"{k}: {cache[k]:.4f}" for k in sorted(cache))
     return d, f"linear scan {start} samples; quick refits (samples: fit RMSE mm) {tried}"
-
-
-def feature_names(m: GeneralizedPI) -> list[str]:
-    """Names of the model's raw feature columns, in order."""
-    return (["v"] + [f"relax {t:g} s" for t in m.memory_taus_s_]
-            + [f"play {i}" for i in range(m.thresholds_.size)]
-            + [f"travel {t:g} V" for t in m.path_memory_v]
-            + [f"direction {c} {t:g} V" for c in range(m.n_direction_channels)
-               for t in m.direction_memory_v]
-            + (["dv/dt"] if m.rate_channel else []))
-
-
-def with_new_columns(model: GeneralizedPI, rec: DiagnosisRecord, change, iterations: int = 3
-                     ) -> GeneralizedPI:
-    """A copy of ``model`` with ``change(copy)`` adding feature columns; only their weights
-    are fitted (Gauss-Newton through the frozen output map, on the fit rows)."""
-    m = copy.deepcopy(model)
-    change(m)
-    old = dict(zip(feature_names(model), range(model.feature_mean_.size), strict=True))
-    names = feature_names(m)
-    u, y, obs = rec.u_fit, rec.y_fit, rec.fit_obs
-    F = m._raw_features(u, m._theta)
-    mean, std = F[obs].mean(axis=0), F[obs].std(axis=0)
-    scale = np.where(std > 0, std, 1.0)
-    w = np.zeros(len(names) + 1)
-    w[-1] = model.weights_[-1]
-    for j, n in enumerate(names):
-        if n in old:
-            i = old[n]
-            mean[j], scale[j], w[j] = model.feature_mean_[i], model.feature_scale_[i], \
-                model.weights_[i]
-    new = np.array([n not in old for n in names] + [False])
-    m.feature_mean_, m.feature_scale_ = mean, scale
-    A = np.column_stack([(F - mean) / scale, np.ones(u.size)])
-    for _ in range(iterations):
-        z = A @ w
-        r = y - m.output_stage(hinge_basis(z, m.knots_) @ m.map_coef_,
-                               np.arange(u.size) * rec.dt_s)
-        J = A[:, new] * hinge_slope(z, m.knots_, m.map_coef_)[:, None]
-        w[new] += np.linalg.lstsq(J[obs], r[obs], rcond=None)[0]
-    m.weights_ = w
-    return m
 
 
 def fit_residual(model: GeneralizedPI, rec: DiagnosisRecord) -> np.ndarray:
@@ -822,23 +778,30 @@ class RateDependence(Candidate):
                "with the migrating cations): loops widen with frequency")
 
     def not_testable(self, rec, model, given):
-        if not given:
-            return ("without a given model the core's fastest relaxation (0.05 s) beside the "
-                    "charge already spans the charging current (v - x_0.05 ~ 0.05 dv/dt), so "
-                    "a channel for it cannot be told apart; give another day's model "
-                    "(--model) to see a rate dependence appear")
         return fast_input_reason(rec, model, "rate-dependent bending")
 
+    # the water dragged with the cations bends the strip on top of the charge's bending: a
+    # charging-current channel added after the output map, one gain (mm per V/s). Inside the
+    # map, a current is only the difference of the charge and its fastest relaxation, a
+    # weight the ridge penalty keeps small
     def refit(self, model, rec):
-        return "fitted only around a given model"
+        if model.output_rate:
+            return "the model already has a charging-current channel"
+        m = refit_with(model, rec, {"output_rate": True,
+                                    "output_coef_": np.r_[0.0, model.output_coef_]},
+                       output_rate=True)
+        return Fitted(m, {"gain_mm_per_v_per_s": float(m.output_coef_[0])})
 
     def around(self, model, rec):
-        if model.rate_channel:
+        # one gain, fitted by least squares to what the frozen model leaves
+        if model.output_rate:
             return "the model already has a charging-current channel"
-
-        def add(m):
-            m.rate_channel = True
-        return Fitted(with_new_columns(model, rec, add), {"channel": "dv/dt"})
+        obs = rec.fit_obs
+        x = model._charging_current(model._charge(rec.u_fit, model._theta))[obs]
+        g = float(x @ (rec.y_fit - model.simulate(rec.u_fit))[obs] / (x @ x))
+        m = copy.deepcopy(model)
+        m.output_rate, m.output_coef_ = True, np.r_[g, model.output_coef_]
+        return Fitted(m, {"gain_mm_per_v_per_s": g})
 
 
 OWN_MAP_REASON = ("without a given model the output map is fitted to this record and carries "
