@@ -323,6 +323,22 @@ def test_rate_dependence_is_a_charging_current_channel_found_with_its_gain():
         assert d.rmse_after_mm < 0.5 * d.rmse_before_mm
 
 
+def test_rate_dependence_needs_a_charging_the_sampling_resolves():
+    """On the Duhem plant, which has no charging lag, the core's charging settles within a
+    sample or two, so a charging current would be the input's sample difference: not
+    testable, with the rate that would resolve one. The IPMC's charging spans many samples."""
+    from duhem_plant import duhem_plant
+
+    ipmc = plant_record({}, 150.0, 4)
+    rate = CANDIDATES["rate_dependence"]
+    reasons = {}
+    for name, y in (("ipmc", ipmc.y_mm), ("duhem", duhem_plant(ipmc.u_v, 4, 1 / RATE))):
+        rec = DiagnosisRecord(ipmc.t_s, ipmc.u_v, y, DiagnosisConfig())
+        reasons[name] = rate.not_testable(rec, core_model(rec), given=False)
+    assert reasons["ipmc"] is None
+    assert "sample difference" in reasons["duhem"] and "Hz or faster" in reasons["duhem"]
+
+
 def test_creep_around_a_given_model_with_slow_input_memory_is_one_relaxation():
     """Another day's model of ipmc identify's default family (input memory up to 36 s):
     creep that came since is still testable around it, fitted as one relaxation, and its

@@ -209,6 +209,20 @@ def fast_input_reason(rec: DiagnosisRecord, model: GeneralizedPI, what: str) -> 
             f"the charging lag; record steps (at least {c.min_steps}) or faster input")
 
 
+def unresolved_charging(rec: DiagnosisRecord, model: GeneralizedPI) -> str | None:
+    """None when the model's charging lags the input over enough samples that its current is
+    a signal of its own (:attr:`DiagnosisConfig.rate_min_lagged_share`); else why not, and
+    the sampling rate that would resolve it."""
+    tau, share = model.charge_tau_s_, rec.config.rate_min_lagged_share
+    if tau > 0 and math.exp(-2.0 * rec.dt_s / tau) >= share:
+        return None
+    need_hz = 2.0 / (tau * math.log(1.0 / share)) if tau > 0 else math.inf
+    return (f"the model's charging settles within {tau / rec.dt_s:.1f} sample periods (tau "
+            f"{1e3 * tau:.0f} ms): a step's current falls mostly in the step's own sample, "
+            f"where it is the input's sample difference, not a charging current; if the "
+            f"actuator charges at all, sample at {need_hz:.0f} Hz or faster to resolve it")
+
+
 # -- the effects ----------------------------------------------------------------------------
 def creep_taus(model: GeneralizedPI, rec: DiagnosisRecord, given: bool = False
                ) -> tuple[float, ...]:
@@ -778,7 +792,8 @@ class RateDependence(Candidate):
                "with the migrating cations): loops widen with frequency")
 
     def not_testable(self, rec, model, given):
-        return fast_input_reason(rec, model, "rate-dependent bending")
+        return unresolved_charging(rec, model) or fast_input_reason(
+            rec, model, "rate-dependent bending")
 
     # the water dragged with the cations bends the strip on top of the charge's bending: a
     # charging-current channel added after the output map, one gain (mm per V/s). Inside the

@@ -34,6 +34,10 @@ class DiagnosisConfig:
     #: Widest dead zone searched (V), and the share of fit samples with |u| below it needed.
     dead_zone_max_v: float = 1.0
     dead_zone_min_share: float = 0.05
+    #: A charging current is told from the input's sample difference when at least this share
+    #: of a step's current energy comes after the step's own sample (exp(-2 dt / tau) for the
+    #: first-order charging); below it, the current is mostly that one sample.
+    rate_min_lagged_share: float = 0.5
     #: Longest transport delay searched (s).
     max_delay_s: float = 0.5
     #: Held-out samples within this time after the voltage left the fit part's range are not
@@ -51,6 +55,9 @@ class DiagnosisConfig:
             raise ValueError(f"fit_share must be in [0.3, 0.9], got {self.fit_share}")
         if not 0 < self.min_power < 1:
             raise ValueError(f"min_power must be in (0, 1), got {self.min_power}")
+        if not 0 < self.rate_min_lagged_share < 1:
+            raise ValueError(f"rate_min_lagged_share must be in (0, 1), got "
+                             f"{self.rate_min_lagged_share}")
         if not 0 < self.family_alpha < 0.5:
             raise ValueError(f"family_alpha must be in (0, 0.5), got {self.family_alpha}")
         positive = ("material_noise_share", "creep_min_tau_s", "hold_min_s", "step_share",
