@@ -214,9 +214,12 @@ def unresolved_charging(rec: DiagnosisRecord, model: GeneralizedPI) -> str | Non
     a signal of its own (:attr:`DiagnosisConfig.rate_min_lagged_share`); else why not, and
     the sampling rate that would resolve it."""
     tau, share = model.charge_tau_s_, rec.config.rate_min_lagged_share
-    if tau > 0 and math.exp(-2.0 * rec.dt_s / tau) >= share:
+    if not tau > 0:
+        return ("the model has no charging stage: its charge is the input, whose current is "
+                "the input's sample difference, not a charging current")
+    if math.exp(-2.0 * rec.dt_s / tau) >= share:
         return None
-    need_hz = 2.0 / (tau * math.log(1.0 / share)) if tau > 0 else math.inf
+    need_hz = 2.0 / (tau * math.log(1.0 / share))
     return (f"the model's charging settles within {tau / rec.dt_s:.1f} sample periods (tau "
             f"{1e3 * tau:.0f} ms): a step's current falls mostly in the step's own sample, "
             f"where it is the input's sample difference, not a charging current; if the "
