@@ -334,12 +334,12 @@ def test_rate_dependence_needs_a_charging_the_sampling_resolves():
     reasons = {}
     for name, y in (("ipmc", ipmc.y_mm), ("duhem", duhem_plant(ipmc.u_v, 4, 1 / RATE))):
         rec = DiagnosisRecord(ipmc.t_s, ipmc.u_v, y, DiagnosisConfig())
-        reasons[name] = rate.not_testable(rec, core_model(rec), given=False)
+        model = core_model(rec)
+        reasons[name] = rate.not_testable(rec, model, given=False)
     assert reasons["ipmc"] is None
     assert "sample difference" in reasons["duhem"] and "Hz or faster" in reasons["duhem"]
-    linear = core_model(rec)
-    linear.rate_limit, linear.charge_tau_s_ = False, 0.0
-    assert "no charging stage" in rate.not_testable(rec, linear, given=True)
+    model.rate_limit, model.charge_tau_s_ = False, 0.0   # a model without a charging stage
+    assert "no charging stage" in rate.not_testable(rec, model, given=True)
 
 
 def test_creep_around_a_given_model_with_slow_input_memory_is_one_relaxation():

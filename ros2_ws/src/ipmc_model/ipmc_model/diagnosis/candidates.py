@@ -816,6 +816,8 @@ class RateDependence(Candidate):
             return "the model already has a charging-current channel"
         obs = rec.fit_obs
         x = model._charging_current(model._charge(rec.u_fit, model._theta))[obs]
+        if not x @ x > 0:
+            return "the model's charge does not move on the fit part"
         g = float(x @ (rec.y_fit - model.simulate(rec.u_fit))[obs] / (x @ x))
         m = copy.deepcopy(model)
         m.output_rate, m.output_coef_ = True, np.r_[g, model.output_coef_]
