@@ -224,6 +224,19 @@ def hinge_slope(z: np.ndarray, knots: np.ndarray, coef: np.ndarray) -> np.ndarra
     return coef[0] + (z[:, None] > knots[None, :]).astype(float) @ coef[1:]
 
 
+def hinge_map(z: np.ndarray, knots: np.ndarray, coef: np.ndarray,
+              z_range: tuple[float, float] = (-math.inf, math.inf)) -> np.ndarray:
+    """The piecewise-linear map ``g(z)``, continued beyond ``z_range`` (the range of z it was
+    fitted on) with its slope at that range's edge: no data fixes the slope change at a hinge
+    beyond it, so its coefficient is whatever the optimiser left there, and a free run that
+    leaves the range would follow it."""
+    lo, hi = z_range
+    if lo == -math.inf and hi == math.inf:
+        return hinge_basis(z, knots) @ coef
+    zc = np.clip(z, lo, hi)
+    return hinge_basis(zc, knots) @ coef + hinge_slope(zc, knots, coef) * (z - zc)
+
+
 def delayed(u: np.ndarray, samples: int, history=None) -> np.ndarray:
     """``u`` delayed by whole ``samples``, the first ones from ``history`` (oldest first) or 0."""
     if samples <= 0:
@@ -356,6 +369,8 @@ class GeneralizedPI:
         Weights of the standardised features, the last one a constant.
     knots_ : ndarray, shape (n_knots,)
     map_coef_ : ndarray, shape (n_knots + 1,)
+    map_range_ : tuple of float
+        The map input's range on the fit's rows; beyond it the map goes on at its edge slope.
     cv_ : CvResult
     train_rmse_ : float
     """
@@ -394,6 +409,7 @@ class GeneralizedPI:
         self.output_rate = bool(output_rate)
         self.progress = progress
         self.weights_ = None
+        self.map_range_ = (-math.inf, math.inf)
         self.neutral_output_stage()
 
     def neutral_output_stage(self) -> None:
@@ -535,7 +551,7 @@ class GeneralizedPI:
         if self.cv_.alpha != self.alphas[0]:
             _, bounds = self._initial_theta(u, span_s)
             x = self._joint_fit(u, y, x, bounds, self.cv_.alpha, max(5, self.max_nfev // 3))
-        self._unpack(x)
+        self._unpack(x, u, y)
         self.train_rmse_ = float(np.sqrt(np.nanmean((self.simulate(u) - y) ** 2)))
         self.fit_seconds_ = time.perf_counter() - t0
         return self
@@ -550,7 +566,7 @@ class GeneralizedPI:
         self.cv_ = self._cross_validate(u, y, x)
         if self.cv_.alpha != alpha:
             x = self._joint_fit(u, y, x, bounds, self.cv_.alpha, nfev)
-        self._unpack(x)
+        self._unpack(x, u, y)
         self._say(f"refitted on this record from the parameters learned before: CV free-run RMSE "
                   f"{min(self.cv_.rmse):.4g} ({time.perf_counter() - t0:.1f} s)")
         self.train_rmse_ = float(np.sqrt(np.nanmean((self.simulate(u) - y) ** 2)))
@@ -643,7 +659,9 @@ class GeneralizedPI:
         hi = [math.log(span_s / 10), math.log(1e4 * u_max / self.dt_s)]
         return np.log([tau0, slew0]), (lo, hi)
 
-    def _unpack(self, x: np.ndarray) -> None:
+    def _unpack(self, x: np.ndarray, u: np.ndarray, y: np.ndarray) -> None:
+        """The learned parameters from the joint fit's vector ``x``, and the range of the
+        map's input on the rows of ``u`` the fit measured (``y`` finite)."""
         p = self.feature_mean_.size + 1
         if self.rate_limit:
             self.charge_tau_s_, self.slew_v_per_s_ = (float(v) for v in np.exp(x[:2]))
@@ -656,6 +674,8 @@ class GeneralizedPI:
             self.drift_gain_per_s_, self.drift_offset_mm_per_s_ = (float(v) for v in
                                                                    x[2 + p + k:4 + p + k])
         self.output_coef_ = np.array(x[x.size - self.n_output_channels:])
+        z = (self._design_and_outputs(u, self._theta)[0] @ self.weights_)[np.isfinite(y)]
+        self.map_range_ = (float(z.min()), float(z.max()))
 
     def _joint_fit(self, u, y, x0, bounds, alpha: float, max_nfev: int | None = None
                    ) -> np.ndarray:
@@ -769,7 +789,7 @@ class GeneralizedPI:
         A, X = self._design_and_outputs(u, self._theta)
         z = A @ self.weights_
         added = X @ self.output_coef_ if self.n_output_channels else 0.0
-        return self.output_stage(hinge_basis(z, self.knots_) @ self.map_coef_,
+        return self.output_stage(hinge_map(z, self.knots_, self.map_coef_, self.map_range_),
                                  np.arange(z.size) * self.dt_s, added)
 
     def predict(self, u, y=None) -> np.ndarray:
@@ -887,8 +907,8 @@ class GpiStepper:
         added = n.out_relax @ m.output_coef_[r:]
         if r:
             added = added + m.output_coef_[0] * m._charging_current(n.v, self.state.v)
-        return m.output_stage(hinge_basis(z, m.knots_) @ m.map_coef_, self.state.k * m.dt_s,
-                              added)
+        return m.output_stage(hinge_map(z, m.knots_, m.map_coef_, m.map_range_),
+                              self.state.k * m.dt_s, added)
 
     def outputs(self, x_candidates) -> np.ndarray:
         """Model outputs (mm) for candidate charge inputs (V) of this sample; state unchanged."""
@@ -1029,4 +1049,5 @@ def _bracket(err: np.ndarray) -> tuple[int, int]:
 
 
 __all__ = ["CvResult", "GeneralizedPI", "GpiInverse", "GpiInverseStepper", "GpiState",
-           "GpiStepper", "hinge_basis", "lowpass_bank", "play_bank", "rate_limited_charge"]
+           "GpiStepper", "hinge_basis", "hinge_map", "lowpass_bank", "play_bank",
+           "rate_limited_charge"]

@@ -213,6 +213,7 @@ def _gpi_doc(model) -> tuple[str, dict, dict]:
     body["drift_offset_mm_per_s_"] = float(m.drift_offset_mm_per_s_)
     body["limit_mm_"] = float(m.limit_mm_) if math.isfinite(m.limit_mm_) else None
     body["delay_samples_"] = int(m.delay_samples_)
+    body["map_range_"] = [v if math.isfinite(v) else None for v in m.map_range_]
     if inverse:
         body["u_max_v"] = model.u_max_v
     return ("gpi-inverse" if inverse else "gpi"), body, {k: getattr(m, k) for k in GPI_ARRAYS}
@@ -236,6 +237,9 @@ def _build_gpi(body: dict, arrays: dict):
     m.drift_offset_mm_per_s_ = float(body.get("drift_offset_mm_per_s_", 0.0))
     limit = body.get("limit_mm_")
     m.limit_mm_ = math.inf if limit is None else float(limit)
+    # a file written before the map's range was kept extrapolates with its outer hinges
+    lo, hi = body.get("map_range_", [None, None])
+    m.map_range_ = (-math.inf if lo is None else float(lo), math.inf if hi is None else float(hi))
     for k in GPI_ARRAYS:
         setattr(m, k, np.asarray(arrays[k], dtype=float))
     cv = body["cv"]
