@@ -128,6 +128,27 @@ def test_model_files_round_trip_and_refuse_a_changed_array(rig_model, tmp_path):
         load_model(path)
 
 
+def test_a_hinge_beyond_the_fitted_range_does_not_move_the_free_run(tmp_path):
+    """Fitted within +-1.5 V and run to +-3 V: the map's input leaves the range it was fitted
+    on, where it goes on at its edge slope, so a hinge placed beyond that range (any
+    coefficient: no data fixes it) changes nothing, and the range survives the file."""
+    _, u = random_sine(60.0, 100.0, 1.5, seed=4)
+    m = GeneralizedPI(max_nfev=10).fit(u, IpmcPlant(seed=4).run(u).y_mm)
+    z_fit = m._design_and_outputs(u, m._theta)[0] @ m.weights_
+    assert m.map_range_ == (z_fit.min(), z_fit.max())
+    _, wide = random_sine(30.0, 100.0, 3.0, seed=5)
+    z = m._design_and_outputs(wide, m._theta)[0] @ m.weights_
+    assert z.max() > m.map_range_[1] + 0.1 or z.min() < m.map_range_[0] - 0.1
+    before = m.simulate(wide)
+    hinged = GeneralizedPI(max_nfev=10).fit(u, IpmcPlant(seed=4).run(u).y_mm)
+    hinged.knots_ = np.r_[m.knots_, m.map_range_[1] + 0.05]
+    hinged.map_coef_ = np.r_[m.map_coef_, 1000.0]
+    np.testing.assert_allclose(hinged.simulate(wide), before, atol=1e-9)
+    hinged.map_range_ = (-np.inf, np.inf)   # without the range the hinge takes over
+    assert _rmse(hinged.simulate(wide), before) > 1.0
+    assert load_model(save_model(m, tmp_path / "gpi")).map_range_ == m.map_range_
+
+
 def _csv(tmp_path, name, u, y, rate_hz=100.0):
     t = np.arange(u.size) / rate_hz
     return str(save_csv(Record(t_s=t, u_v=u, y_mm=y), tmp_path / name))
