@@ -234,7 +234,10 @@ def hinge_map(z: np.ndarray, knots: np.ndarray, coef: np.ndarray,
     if lo == -math.inf and hi == math.inf:
         return hinge_basis(z, knots) @ coef
     zc = np.clip(z, lo, hi)
-    return hinge_basis(zc, knots) @ coef + hinge_slope(zc, knots, coef) * (z - zc)
+    g = hinge_basis(zc, knots) @ coef
+    out = zc != z   # the slopes only where the run left the range (a free run's hot path)
+    g[out] += hinge_slope(zc[out], knots, coef) * (z[out] - zc[out])
+    return g
 
 
 def delayed(u: np.ndarray, samples: int, history=None) -> np.ndarray:
@@ -551,8 +554,8 @@ class GeneralizedPI:
         if self.cv_.alpha != self.alphas[0]:
             _, bounds = self._initial_theta(u, span_s)
             x = self._joint_fit(u, y, x, bounds, self.cv_.alpha, max(5, self.max_nfev // 3))
-        self._unpack(x, u, y)
-        self.train_rmse_ = float(np.sqrt(np.nanmean((self.simulate(u) - y) ** 2)))
+        self._unpack(x)
+        self._learned_on(u, y)
         self.fit_seconds_ = time.perf_counter() - t0
         return self
 
@@ -566,10 +569,10 @@ class GeneralizedPI:
         self.cv_ = self._cross_validate(u, y, x)
         if self.cv_.alpha != alpha:
             x = self._joint_fit(u, y, x, bounds, self.cv_.alpha, nfev)
-        self._unpack(x, u, y)
+        self._unpack(x)
         self._say(f"refitted on this record from the parameters learned before: CV free-run RMSE "
                   f"{min(self.cv_.rmse):.4g} ({time.perf_counter() - t0:.1f} s)")
-        self.train_rmse_ = float(np.sqrt(np.nanmean((self.simulate(u) - y) ** 2)))
+        self._learned_on(u, y)
         self.fit_seconds_ = time.perf_counter() - t0
         return self
 
@@ -659,9 +662,7 @@ class GeneralizedPI:
         hi = [math.log(span_s / 10), math.log(1e4 * u_max / self.dt_s)]
         return np.log([tau0, slew0]), (lo, hi)
 
-    def _unpack(self, x: np.ndarray, u: np.ndarray, y: np.ndarray) -> None:
-        """The learned parameters from the joint fit's vector ``x``, and the range of the
-        map's input on the rows of ``u`` the fit measured (``y`` finite)."""
+    def _unpack(self, x: np.ndarray) -> None:
         p = self.feature_mean_.size + 1
         if self.rate_limit:
             self.charge_tau_s_, self.slew_v_per_s_ = (float(v) for v in np.exp(x[:2]))
@@ -674,8 +675,15 @@ class GeneralizedPI:
             self.drift_gain_per_s_, self.drift_offset_mm_per_s_ = (float(v) for v in
                                                                    x[2 + p + k:4 + p + k])
         self.output_coef_ = np.array(x[x.size - self.n_output_channels:])
-        z = (self._design_and_outputs(u, self._theta)[0] @ self.weights_)[np.isfinite(y)]
-        self.map_range_ = (float(z.min()), float(z.max()))
+
+    def _learned_on(self, u: np.ndarray, y: np.ndarray) -> None:
+        """The map input's range on the rows of ``u`` the fit measured (``y`` finite), and
+        the fit's RMSE there, from one free run."""
+        A, X = self._design_and_outputs(u, self._theta)
+        z = A @ self.weights_
+        seen = np.isfinite(y)
+        self.map_range_ = (float(z[seen].min()), float(z[seen].max()))
+        self.train_rmse_ = float(np.sqrt(np.mean((self._output_of(z, X) - y)[seen] ** 2)))
 
     def _joint_fit(self, u, y, x0, bounds, alpha: float, max_nfev: int | None = None
                    ) -> np.ndarray:
@@ -787,7 +795,10 @@ class GeneralizedPI:
         check_fitted(self, "weights_")
         u = as_signal("u", u)
         A, X = self._design_and_outputs(u, self._theta)
-        z = A @ self.weights_
+        return self._output_of(A @ self.weights_, X)
+
+    def _output_of(self, z: np.ndarray, X: np.ndarray) -> np.ndarray:
+        """The free run's output (mm) from the map's input ``z`` and the output channels."""
         added = X @ self.output_coef_ if self.n_output_channels else 0.0
         return self.output_stage(hinge_map(z, self.knots_, self.map_coef_, self.map_range_),
                                  np.arange(z.size) * self.dt_s, added)
