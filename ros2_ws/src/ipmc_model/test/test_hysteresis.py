@@ -3,6 +3,7 @@ and ``ipmc identify``'s default comparison of families."""
 
 from __future__ import annotations
 
+import copy
 import json
 
 import numpy as np
@@ -138,9 +139,9 @@ def test_a_hinge_beyond_the_fitted_range_does_not_move_the_free_run(tmp_path):
     assert m.map_range_ == (z_fit.min(), z_fit.max())
     _, wide = random_sine(30.0, 100.0, 3.0, seed=5)
     z = m._design_and_outputs(wide, m._theta)[0] @ m.weights_
-    assert z.max() > m.map_range_[1] + 0.1 or z.min() < m.map_range_[0] - 0.1
+    assert z.max() > m.map_range_[1] + 0.1   # the run goes past the hinge added below
     before = m.simulate(wide)
-    hinged = GeneralizedPI(max_nfev=10).fit(u, IpmcPlant(seed=4).run(u).y_mm)
+    hinged = copy.deepcopy(m)
     hinged.knots_ = np.r_[m.knots_, m.map_range_[1] + 0.05]
     hinged.map_coef_ = np.r_[m.map_coef_, 1000.0]
     np.testing.assert_allclose(hinged.simulate(wide), before, atol=1e-9)
