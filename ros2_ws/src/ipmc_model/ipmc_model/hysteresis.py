@@ -683,7 +683,7 @@ class GeneralizedPI:
         z = A @ self.weights_
         seen = np.isfinite(y)
         self.map_range_ = (float(z[seen].min()), float(z[seen].max()))
-        self.train_rmse_ = float(np.sqrt(np.mean((self._output_of(z, X) - y)[seen] ** 2)))
+        self.train_rmse_ = float(np.sqrt(np.nanmean((self._output_of(z, X) - y) ** 2)))
 
     def _joint_fit(self, u, y, x0, bounds, alpha: float, max_nfev: int | None = None
                    ) -> np.ndarray:
