@@ -323,6 +323,20 @@ def test_rate_dependence_is_a_charging_current_channel_found_with_its_gain():
         assert d.rmse_after_mm < 0.5 * d.rmse_before_mm
 
 
+def test_a_delay_the_core_took_up_as_slower_charging_is_scanned_to_its_length():
+    """Without a delay the core model takes a 0.2 s one up as slower charging. The delay's
+    scan refits it at each delay from where it is: the scan lands on the plant's 10 samples
+    (short refits from a fresh start stopped far above the core's error and took 13)."""
+    from ipmc_model.diagnosis.candidates import fit_sse
+
+    r = plant_record({"delay": {"delay_s": 0.2}}, 240.0, 0)
+    rec = DiagnosisRecord(r.t_s, r.u_v, r.y_mm, DiagnosisConfig())
+    core = core_model(rec)
+    fitted = CANDIDATES["delay"].refit(core, rec)
+    assert abs(fitted.params["delay_s"] - 0.2) <= 1.0 / RATE + 1e-9
+    assert fit_sse(fitted.model, rec) < 0.5 * fit_sse(core, rec)
+
+
 def test_rate_dependence_needs_a_charging_the_sampling_resolves():
     """On the Duhem plant, which has no charging lag, the core's charging settles within a
     sample or two, so a charging current would be the input's sample difference: not
@@ -452,6 +466,26 @@ def test_a_creep_whose_relaxation_is_faster_than_a_creep_is_outside_its_range():
         found[tau_s] = creep.refine(model, model, rec, given=True)
     assert found[4.0].params["tau_s"] < 10.0 and "faster than a creep" in found[4.0].outside
     assert found[20.0].outside is None and found[20.0].params["tau_s"] > 10.0
+
+
+def test_a_dead_zone_narrower_than_its_scan_resolves_is_outside_its_range():
+    """A width below the dead-zone scan's resolution bends the tip less than the sensor
+    resolves: a block that small took up a misfit of the model, and is not named."""
+    from ipmc_model.diagnosis.candidates import DEAD_ZONE_TOL_V, copy_with
+    from ipmc_model.hysteresis import GeneralizedPI
+
+    day1 = plant_record({}, 150.0, 4)
+    model = GeneralizedPI(dt_s=1 / RATE).fit(day1.u_v, day1.y_mm)
+    dz = CANDIDATES["dead_zone"]
+    found = {}
+    for plant_v, after_v in ((0.0, 0.4 * DEAD_ZONE_TOL_V), (0.3, 0.3)):
+        day2 = plant_record({"dead_zone": {"width_v": plant_v}} if plant_v else {}, 150.0, 5)
+        rec = DiagnosisRecord(day2.t_s, day2.u_v, day2.y_mm, DiagnosisConfig())
+        found[plant_v] = dz.refine(model, copy_with(model, dead_zone_v=after_v), rec, True)
+    assert found[0.0].params["width_v"] < DEAD_ZONE_TOL_V
+    assert "below the scan's resolution" in found[0.0].outside
+    assert found[0.3].outside is None
+    assert found[0.3].params["width_v"] == pytest.approx(0.3, abs=0.05)
 
 
 def test_cli_writes_the_report_and_a_model_that_runs(tmp_path, capsys):

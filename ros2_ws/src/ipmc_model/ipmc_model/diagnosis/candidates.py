@@ -133,8 +133,10 @@ def refit_with(model: GeneralizedPI, rec: DiagnosisRecord, start: dict, **change
     return min((fresh, warm), key=lambda m: fit_sse(m, rec))
 
 
-#: Trust-region iterations of the quick fits that scan a block's parameter (the final fit at
-#: the best value has the model's own).
+#: Trust-region iterations of the quick fits of the dead-zone scan (the final fit at
+#: the best value has the model's own). Warm refits there, as the delay's, found widths that
+#: fit the core's misfit beside other effects (false dead zones beside a drift) that the
+#: decision's noise-floor margin does not discount; they wait for a margin that does.
 SCAN_NFEV = 10
 
 
@@ -147,14 +149,17 @@ def scan_error(model: GeneralizedPI, rec: DiagnosisRecord, **changes) -> float:
 
 def descend_delay(model: GeneralizedPI, rec: DiagnosisRecord, start: int, lo: int, hi: int
                   ) -> tuple[int, str]:
-    """The delay (samples, in [lo, hi]) that quick refits prefer, by discrete descent from
-    ``start`` (the linear scan's); the scan's text."""
+    """The delay (samples, in [lo, hi]) that refits prefer, by discrete descent from
+    ``start`` (the linear scan's); the scan's text. Each refit starts warm from ``model``
+    (:func:`warm_refit`): a core without a delay takes one up as slower charging, and quick
+    fits from a fresh start stopped 4-10x above its error, so they compared how far each got,
+    not the delays (a 0.2 s delay scanned to 0.26 s and was rejected)."""
     dt = rec.dt_s
     cache = {}
 
     def err(d: int) -> float:
         if d not in cache:
-            cache[d] = scan_error(model, rec, delay_s=d * dt)
+            cache[d] = warm_refit(model, rec, delay_samples_=d, delay_s=d * dt).train_rmse_
         return cache[d]
 
     d = min(max(start, lo), hi)
@@ -778,9 +783,14 @@ class DeadZone(Candidate):
         _, ends, open_ends = prof.interval()
         best = prof.best   # the accepted block stays: a best point without it is not kept
         kept = better_fit(best, after, rec) if best.dead_zone_v > lo else None
+        added = float((kept or after).dead_zone_v) - lo
+        outside = (None if added >= DEAD_ZONE_TOL_V else
+                   f"its width ({1000 * added:.1f} mV) is below the scan's resolution "
+                   f"({1000 * DEAD_ZONE_TOL_V:g} mV, a bending below the sensor's reach): the "
+                   f"block took up a misfit of the model, not a dead zone")
         return Refined({"width_v": float((kept or after).dead_zone_v),
                         "width_ci_v": [max(ends[0], 0.0), ends[1]],
-                        "width_ci_open": list(open_ends)}, kept)
+                        "width_ci_open": list(open_ends)}, kept, outside)
 
     def around(self, model, rec):
         m, w = scalar_around(model, rec, "dead_zone_v", model.dead_zone_v,

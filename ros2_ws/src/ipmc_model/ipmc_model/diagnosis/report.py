@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..persistence import save_model
-from .candidates import CANDIDATES
+from .candidates import CANDIDATES, DEAD_ZONE_TOL_V
 from .results import Diagnosis, Outcome
 
 METRIC = ("free-run RMSE (mm) on the held-out last {held:.0f} % of the record (of each record, "
@@ -40,7 +40,8 @@ RULE = ("An effect is accepted when the current model with its block, fitted on 
         "less than {power:.0%} probability at the gain the fit rows show: the held-out rows "
         "are too few to decide it, and its probe is proposed. An accepted effect whose "
         "parameter, re-estimated on every row, lies outside the effect's physical range (a "
-        "creep faster than {creep_min:g} s) is rejected: its block took up something else.")
+        "creep faster than {creep_min:g} s, a dead zone narrower than its scan's resolution, "
+        "{dz_tol:g} V) is rejected: its block took up something else.")
 
 
 def check_report_dir(out_dir) -> Path:
@@ -86,7 +87,8 @@ def summary_of(d: Diagnosis, paths: dict) -> dict:
         "noise_floor_mm": d.noise_floor_mm,
         "metric": METRIC.format(held=100 * (1 - c.fit_share)),
         "rule": RULE.format(alpha=c.family_alpha, share=c.material_noise_share, margin=margin,
-                            settle=c.settle_s, power=c.min_power, creep_min=c.creep_min_tau_s),
+                            settle=c.settle_s, power=c.min_power, creep_min=c.creep_min_tau_s,
+                            dz_tol=DEAD_ZONE_TOL_V),
         "given_model": d.given_model,
         "known_effects": list(d.known),
         "candidates": [r.as_dict() for r in d.candidates],
