@@ -120,16 +120,17 @@ def register(cls: type[Candidate]) -> type[Candidate]:
 
 
 # -- shared fitting helpers -----------------------------------------------------------------
-def refit_with(model: GeneralizedPI, rec: DiagnosisRecord, start: dict, **changes
-               ) -> GeneralizedPI:
+def refit_with(model: GeneralizedPI, rec: DiagnosisRecord, start: dict,
+               warm: GeneralizedPI | None = None, **changes) -> GeneralizedPI:
     """``model``'s hyperparameters with ``changes``, fitted on the fit rows twice: from a
     fresh start (its ridge weight chosen again by the blocked free-run CV), and warm from
     ``model`` with the block added at ``start`` (:func:`warm_refit`; a block at zero
     reproduces ``model``, so that fit can only descend from its error); the lower fit-rows
     error is kept. Either alone fails somewhere: a fresh fit of a few dozen iterations can
-    stop above the model it extends, a warm one in the model's basin."""
+    stop above the model it extends, a warm one in the model's basin. ``warm``: that warm
+    refit when a scan has already made it."""
     fresh = GeneralizedPI(**{**model.get_params(), **changes}).fit(rec.u_fit, rec.y_fit)
-    warm = warm_refit(model, rec, **start)
+    warm = warm if warm is not None else warm_refit(model, rec, **start)
     return min((fresh, warm), key=lambda m: fit_sse(m, rec))
 
 
@@ -148,19 +149,20 @@ def scan_error(model: GeneralizedPI, rec: DiagnosisRecord, **changes) -> float:
 
 
 def descend_delay(model: GeneralizedPI, rec: DiagnosisRecord, start: int, lo: int, hi: int
-                  ) -> tuple[int, str]:
+                  ) -> tuple[int, str, GeneralizedPI]:
     """The delay (samples, in [lo, hi]) that refits prefer, by discrete descent from
-    ``start`` (the linear scan's); the scan's text. Each refit starts warm from ``model``
-    (:func:`warm_refit`): a core without a delay takes one up as slower charging, and quick
-    fits from a fresh start stopped 4-10x above its error, so they compared how far each got,
-    not the delays (a 0.2 s delay scanned to 0.26 s and was rejected)."""
+    ``start`` (the linear scan's); the scan's text; the refit there. Each refit starts warm
+    from ``model`` (:func:`warm_refit`): a core without a delay takes one up as slower
+    charging, and quick fits from a fresh start stopped 4-10x above its error, so they
+    compared how far each got, not the delays (a 0.2 s delay scanned to 0.26 s and was
+    rejected)."""
     dt = rec.dt_s
     cache = {}
 
     def err(d: int) -> float:
         if d not in cache:
-            cache[d] = warm_refit(model, rec, delay_samples_=d, delay_s=d * dt).train_rmse_
-        return cache[d]
+            cache[d] = warm_refit(model, rec, delay_samples_=d, delay_s=d * dt)
+        return cache[d].train_rmse_
 
     d = min(max(start, lo), hi)
     while True:
@@ -169,8 +171,8 @@ def descend_delay(model: GeneralizedPI, rec: DiagnosisRecord, start: int, lo: in
         if not better:
             break
         d = min(better, key=err)
-    tried = ", ".join(f"{k}: {cache[k]:.4f}" for k in sorted(cache))
-    return d, f"linear scan {start} samples; quick refits (samples: fit RMSE mm) {tried}"
+    tried = ", ".join(f"{k}: {cache[k].train_rmse_:.4f}" for k in sorted(cache))
+    return d, f"linear scan {start} samples; warm refits (samples: fit RMSE mm) {tried}", cache[d]
 
 
 def fit_residual(model: GeneralizedPI, rec: DiagnosisRecord) -> np.ndarray:
@@ -681,8 +683,8 @@ class Delay(Candidate):
         d = estimate_delay(u, rec.y_fit, rec.dt_s, model.memory_taus_s_,
                            int(round(c.max_delay_s / rec.dt_s)))
         lo, hi = model.delay_samples_ + MIN_DELAY_SAMPLES, int(round(c.max_delay_s / rec.dt_s))
-        d, scan = descend_delay(model, rec, max(d, lo), lo, hi)
-        m = refit_with(model, rec, {"delay_samples_": d, "delay_s": d * rec.dt_s},
+        d, scan, warm = descend_delay(model, rec, max(d, lo), lo, hi)
+        m = refit_with(model, rec, {"delay_samples_": d, "delay_s": d * rec.dt_s}, warm,
                        delay_s=d * rec.dt_s)
         return Fitted(m, {"delay_s": d * rec.dt_s}, scan)
 
