@@ -341,7 +341,14 @@ class Creep(Candidate):
             params = {**creep_estimate(before, rec.whole()), "interval": "whole record"}
             single = None
         else:
-            params, single = creep_profile(before, rec)
+            # the profile starts from the accepted model's core (its bank taken out): the
+            # core fitted beside the creep. Started from the core fitted without it (which
+            # took up what it could of the creep), the refits stopped in its basin, at
+            # several times the accepted model's error on both parts
+            n = len(after.output_taus_s) - len(before.output_taus_s)
+            core = copy_with(after, output_taus_s=tuple(after.output_taus_s[:-n]),
+                             output_coef_=after.output_coef_[:-n])
+            params, single = creep_profile(core, rec)
             params = {**params, "taus_s": [float(single.output_taus_s[-1])],
                       "gains_mm_per_v": [float(single.output_coef_[-1])]}
         low = rec.config.creep_min_tau_s
