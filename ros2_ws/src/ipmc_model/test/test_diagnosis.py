@@ -199,6 +199,18 @@ def test_creep_needs_holds_and_is_found_on_them():
     assert p["taus_s"] == [p["tau_s"]]
 
 
+def test_the_model_an_accepted_creep_leaves_generalises_as_the_one_that_passed():
+    """The creep's costlier estimate (one relaxation, profiled over tau) must not leave a
+    model that predicts the held-out rows worse than the one the rule accepted: the next
+    round would find a drift in what it lost. On this record the core fitted without the
+    creep is a poor start for the profile (its refits stay in that core's basin)."""
+    fx = {"creep": {"tau_s": 12.0, "gain_mm_per_v": -0.6}}
+    d = diagnose(plant_record(fx, 150.0, 1, holds=True))
+    assert d.effects_found == ["creep"]
+    passed = next(r for r in d.rounds[0].results if r.name == "creep").evidence
+    assert d.rounds[1].rmse_start_mm <= 1.2 * passed.rmse_candidate_mm
+
+
 def test_samples_lost_on_the_link_are_rows_the_models_run_through_not_fitted_or_judged():
     """A record that lost stretches of samples (y NaN, the voltage held: dataio.fill_gaps)
     is diagnosed on its measured rows: the creep is found as on the whole record."""
