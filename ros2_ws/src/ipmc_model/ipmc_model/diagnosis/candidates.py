@@ -343,11 +343,11 @@ class Creep(Candidate):
         else:
             # the profile starts from the accepted model's core (its bank taken out): the
             # core fitted beside the creep. Started from the core fitted without it (which
-            # took up what it could of the creep), the refits stopped in its basin, at
-            # several times the accepted model's error on both parts
-            n = len(after.output_taus_s) - len(before.output_taus_s)
-            core = copy_with(after, output_taus_s=tuple(after.output_taus_s[:-n]),
-                             output_coef_=after.output_coef_[:-n])
+            # took up what it could of the creep), the refits can stay in that core's basin,
+            # at several times the accepted model's error on both parts
+            k = len(before.output_taus_s)
+            core = copy_with(after, output_taus_s=tuple(after.output_taus_s[:k]),
+                             output_coef_=after.output_coef_[:k])
             params, single = creep_profile(core, rec)
             params = {**params, "taus_s": [float(single.output_taus_s[-1])],
                       "gains_mm_per_v": [float(single.output_coef_[-1])]}
