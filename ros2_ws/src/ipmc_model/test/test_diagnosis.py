@@ -337,8 +337,8 @@ def test_rate_dependence_is_a_charging_current_channel_found_with_its_gain():
 
 def test_a_delay_the_core_took_up_as_slower_charging_is_scanned_to_its_length():
     """Without a delay the core model takes a 0.2 s one up as slower charging. The delay's
-    scan refits it at each delay from where it is: the scan lands on the plant's 10 samples
-    (short refits from a fresh start stopped far above the core's error and took 3 here)."""
+    scan refits it at each delay from where it is and lands on the plant's 10 samples (short
+    refits from a fresh start stop far above the core's error, and a scan of them does not)."""
     from ipmc_model.diagnosis.candidates import fit_sse
 
     r = plant_record({"delay": {"delay_s": 0.2}}, 240.0, 0)

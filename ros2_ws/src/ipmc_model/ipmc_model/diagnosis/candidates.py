@@ -135,9 +135,9 @@ def refit_with(model: GeneralizedPI, rec: DiagnosisRecord, start: dict,
 
 
 #: Trust-region iterations of the quick fits of the dead-zone scan (the final fit at
-#: the best value has the model's own). Warm refits there, as the delay's, found widths that
-#: fit the core's misfit beside other effects (false dead zones beside a drift) that the
-#: decision's noise-floor margin does not discount; they wait for a margin that does.
+#: the best value has the model's own). Warm refits there, as the delay's, fit widths to the
+#: core's misfit beside other effects (a false dead zone beside a drift), which the decision's
+#: noise-floor margin does not discount.
 SCAN_NFEV = 10
 
 
@@ -153,9 +153,8 @@ def descend_delay(model: GeneralizedPI, rec: DiagnosisRecord, start: int, lo: in
     """The delay (samples, in [lo, hi]) that refits prefer, by discrete descent from
     ``start`` (the linear scan's); the scan's text; the refit there. Each refit starts warm
     from ``model`` (:func:`warm_refit`): a core without a delay takes one up as slower
-    charging, and quick fits from a fresh start stopped 4-10x above its error, so they
-    compared how far each got, not the delays (a 0.2 s delay scanned to 0.26 s and was
-    rejected)."""
+    charging, and a short fit from a fresh start stops several times above that core's
+    error, so a scan of such fits would compare how far each got, not the delays."""
     dt = rec.dt_s
     cache = {}
 
