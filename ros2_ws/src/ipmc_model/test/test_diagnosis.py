@@ -64,14 +64,33 @@ def test_loss_differential_test_is_not_significant_on_autocorrelated_noise_too_o
     assert rejected <= 25  # 12.5 %: a naive i.i.d. t test rejects far more on these
 
 
+def test_a_held_out_offset_counts_as_one_draw_per_record_not_as_many():
+    """A block that only moves the level of each record's held-out error (an offset the
+    model's slow misfit leaves there) is not significant however many rows carry it; one that
+    follows the error's course but moves its level away is significant and not material."""
+    rng = np.random.default_rng(3)
+    slow = np.convolve(rng.normal(size=4000), np.ones(50) / 50, mode="same")
+    records = np.repeat([0, 1], 2000)
+    offset = np.where(records == 0, 0.05, -0.03)
+    noise = 0.005 * rng.normal(size=4000)
+    level = loss_differential_test(slow + offset, slow + noise, 1e-4, records)
+    assert level.mean_gain_mm2 > 1e-3 and level.material
+    assert level.p_value > 0.05
+    # taken as one record, the step between the two offsets is a course the block explains
+    assert loss_differential_test(slow + offset, slow + noise, 1e-4).p_value < 0.01
+    course = loss_differential_test(slow, 0.3 * slow + 0.3, 1e-4, records)
+    assert course.p_value < 1e-3 and course.centred_gain_mm2 > 0
+    assert course.mean_gain_mm2 < 0 and not course.material
+
+
 def test_the_power_of_the_held_out_test_follows_its_standard_error():
     from ipmc_model.diagnosis.decision import power
 
     rng = np.random.default_rng(2)
     slow = np.convolve(rng.normal(size=3000), np.ones(40) / 40, mode="same")
-    test = loss_differential_test(slow + 0.01, slow, 0.0)
+    test = loss_differential_test(1.2 * slow, slow, 0.0)
     n = slow.size   # the standard error is the one the statistic divides by
-    assert test.mean_gain_mm2 / test.standard_error_mm2 * np.sqrt((n - 1) / n) == \
+    assert test.centred_gain_mm2 / test.standard_error_mm2 * np.sqrt((n - 1) / n) == \
         pytest.approx(test.statistic)
     assert power(test, 0.0, 0.05) == pytest.approx(0.05)
     assert power(test, 4.0 * test.standard_error_mm2, 0.05) > 0.9

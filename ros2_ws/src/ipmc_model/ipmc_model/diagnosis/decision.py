@@ -5,14 +5,16 @@ fit rows) lowers the held-out free-run squared error significantly and materiall
 
 * the loss differential ``d_k = e_cur_k^2 - e_new_k^2`` over the held-out samples (those
   within the fit part's voltage range, :meth:`DiagnosisRecord.judged_for`: on a record
-  played from a proposed experiment, the rows of the effect's own probe) is tested by
-  Diebold-Mariano: its mean over a HAC (Bartlett, Newey-West) standard error, with the
-  Harvey-Leybourne-Newbold small-sample factor, one-sided against Student's t; the bandwidth
-  covers the differential's own autocorrelation (a free-run error is slow, so its samples are
-  far from independent);
+  played from a proposed experiment, the rows of the effect's own probe), each error taken
+  about its mean over its record's held-out rows, is tested by Diebold-Mariano: its mean
+  over a HAC (Bartlett, Newey-West) standard error, with the Harvey-Leybourne-Newbold
+  small-sample factor, one-sided against Student's t; the bandwidth covers the
+  differential's own autocorrelation (a free-run error is slow, so its samples are far from
+  independent), and the held-out offset, one draw per record, is left to the margin below;
 * the round's p-values are adjusted by Holm's step-down, holding the family-wise error of
   the candidates the round may accept (the testable ones) at ``family_alpha``;
-* the mean gain must be at least ``material_noise_share`` times the noise floor squared.
+* the mean gain of the errors as they are must be at least ``material_noise_share`` times
+  the noise floor squared.
 
 A candidate the rule does not accept, whose block the fit rows support and whose held-out
 gain has the right sign, is undecided rather than rejected when the held-out rows are too
@@ -53,9 +55,30 @@ def decorrelation_lag(d: np.ndarray) -> int:
     return int(inside[0]) if inside.size else n - 1
 
 
-def loss_differential_test(e_current, e_candidate, margin_mm2: float) -> LossTest:
-    """Diebold-Mariano test that the candidate's squared held-out error is lower."""
-    d = np.asarray(e_current, float) ** 2 - np.asarray(e_candidate, float) ** 2
+def about_means(e, groups=None) -> np.ndarray:
+    """``e`` less its mean over each group (``groups``: a label per sample; None: one)."""
+    e = np.asarray(e, float)
+    if groups is None:
+        return e - e.mean()
+    groups = np.asarray(groups)
+    out = e.copy()
+    for g in np.unique(groups):
+        out[groups == g] -= e[groups == g].mean()
+    return out
+
+
+def loss_differential_test(e_current, e_candidate, margin_mm2: float, groups=None
+                           ) -> LossTest:
+    """Diebold-Mariano test that the candidate's squared held-out error is lower, on each
+    error about its mean over each record's held-out rows (``groups``: the record of each
+    sample): an error constant over a record's held-out part (the free run's offset, set by
+    where the model's slow misfit stands when that part begins) is one draw however many
+    rows carry it, which a HAC variance over at most a quarter of the rows would count as
+    many. The mean gain, what materiality is judged on, is that of the errors as they are:
+    a block that explains the error's course but moves its level away is no better."""
+    e_cur, e_new = np.asarray(e_current, float), np.asarray(e_candidate, float)
+    gain = float(np.mean(e_cur ** 2 - e_new ** 2))
+    d = about_means(e_cur, groups) ** 2 - about_means(e_new, groups) ** 2
     n = d.size
     mean = float(d.mean())
     lag = min(max(newey_west_lag(n), decorrelation_lag(d)), n // 4)
@@ -69,7 +92,7 @@ def loss_differential_test(e_current, e_candidate, margin_mm2: float) -> LossTes
         stat = mean / math.sqrt(var / n) * math.sqrt((n - 1.0) / n)  # HLN factor, horizon 1
     p = float(stats.t.sf(stat, df=n - 1))
     se = math.sqrt(var / n) if var > 0 else 0.0
-    return LossTest(mean, float(stat), p, int(lag), float(margin_mm2), se)
+    return LossTest(gain, float(stat), p, int(lag), float(margin_mm2), se, mean)
 
 
 def power(test: LossTest, expected_gain_mm2: float, alpha: float) -> float:

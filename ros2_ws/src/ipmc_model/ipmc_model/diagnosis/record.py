@@ -165,6 +165,12 @@ class DiagnosisRecord:
         of ``effect``'s probes where the records have them."""
         return (y_model - self.y_mm)[self.judged_for(effect)]
 
+    def judged_segments(self, effect: str | None = None) -> np.ndarray:
+        """Which joined record (its index in ``segments``) each of ``effect``'s judged rows
+        belongs to."""
+        starts = np.array([s.start for s in self.segments])
+        return np.searchsorted(starts, np.flatnonzero(self.judged_for(effect)), "right") - 1
+
     def judged_for(self, effect: str | None = None) -> np.ndarray:
         """The judged rows ``effect``'s test uses: its probes' held-out rows where a record
         played from an experiment has them, else every judged row."""

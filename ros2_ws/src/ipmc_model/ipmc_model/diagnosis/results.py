@@ -31,8 +31,11 @@ class LossTest:
     p_value: float
     bandwidth_samples: int
     margin_mm2: float
-    #: The mean gain's HAC standard error (mm^2): what the test's power follows.
+    #: The HAC standard error (mm^2) of the mean gain of the errors about their means,
+    #: what the statistic divides: what the test's power follows.
     standard_error_mm2: float = float("nan")
+    #: The mean gain of the errors about their means (mm^2), what the statistic tests.
+    centred_gain_mm2: float = float("nan")
 
     @property
     def material(self) -> bool:

@@ -162,7 +162,7 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
             continue
         e_cur = rec.judged_error(y_cur, name)
         e_new = rec.judged_error(out.model.simulate(rec.u_v), name)
-        test = loss_differential_test(e_cur, e_new, margin)
+        test = loss_differential_test(e_cur, e_new, margin, rec.judged_segments(name))
         screen = fit_screen(sse_fit, n_eff, CANDIDATES[name], out.model, rec, cfg.family_alpha)
         tested[name] = (out, Evidence(_rms(e_cur), _rms(e_new), test, out.params, out.scan,
                                       screen=screen,
@@ -212,7 +212,8 @@ def _verdict(name, ev: Evidence, best, passing, alpha, untestable) -> tuple[Outc
     t, sc = ev.test, ev.screen
     on = f" on {ev.judged_on}" if ev.judged_on else ""
     text = (f"held-out RMSE{on} {ev.rmse_current_mm:.4f} -> {ev.rmse_candidate_mm:.4f} mm, mean "
-            f"gain {t.mean_gain_mm2:.3g} mm^2 (margin {t.margin_mm2:.3g}), DM p = "
+            f"gain {t.mean_gain_mm2:.3g} mm^2 (margin {t.margin_mm2:.3g}; about the held-out "
+            f"mean {t.centred_gain_mm2:.3g}), DM p = "
             f"{t.p_value:.2g}, Holm p = {ev.p_holm:.2g}; fit rows: likelihood ratio "
             f"{sc.likelihood_ratio:.3g} (needs {sc.needed:.3g})")
     if name in untestable:
