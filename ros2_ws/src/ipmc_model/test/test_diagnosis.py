@@ -230,6 +230,22 @@ def test_the_model_an_accepted_creep_leaves_generalises_as_the_one_that_passed()
     assert d.rounds[1].rmse_start_mm <= 1.2 * passed.rmse_candidate_mm
 
 
+def test_a_creep_accepted_beside_a_charging_current_channel_is_profiled_with_it():
+    """The creep's profile starts from the accepted model less its bank; the charging-current
+    channel, first among the output channels, stays with its gain."""
+    fx = {"creep": {"tau_s": 20.0, "gain_mm_per_v": -0.3},
+          "rate_dependence": {"gain_mm_per_v_per_s": 0.15}}
+    rec_ = plant_record(fx, 150.0, 1, holds=True)
+    rec = DiagnosisRecord(rec_.t_s, rec_.u_v, rec_.y_mm, DiagnosisConfig())
+    before = CANDIDATES["rate_dependence"].refit(core_model(rec), rec).model
+    after = CANDIDATES["creep"].refit(before, rec).model
+    refined = CANDIDATES["creep"].refine(before, after, rec, False)
+    m = refined.model
+    assert m.output_rate and len(m.output_taus_s) == 1
+    assert m.output_coef_.size == m.n_output_channels == 2
+    assert 10.0 <= refined.params["tau_s"] and refined.params["gain_mm_per_v"] < 0
+
+
 def test_samples_lost_on_the_link_are_rows_the_models_run_through_not_fitted_or_judged():
     """A record that lost stretches of samples (y NaN, the voltage held: dataio.fill_gaps)
     is diagnosed on its measured rows: the creep is found as on the whole record."""

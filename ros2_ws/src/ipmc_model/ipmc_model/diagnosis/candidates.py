@@ -344,9 +344,10 @@ class Creep(Candidate):
             # core fitted beside the creep. Started from the core fitted without it (which
             # took up what it could of the creep), the refits can stay in that core's basin,
             # at several times the accepted model's error on both parts
+            # (the charging-current channel, when the model has one, comes first)
             k = len(before.output_taus_s)
             core = copy_with(after, output_taus_s=tuple(after.output_taus_s[:k]),
-                             output_coef_=after.output_coef_[:k])
+                             output_coef_=after.output_coef_[:int(after.output_rate) + k])
             params, single = creep_profile(core, rec)
             params = {**params, "taus_s": [float(single.output_taus_s[-1])],
                       "gains_mm_per_v": [float(single.output_coef_[-1])]}
