@@ -343,8 +343,9 @@ class Creep(Candidate):
             # the profile starts from the accepted model's core (its bank taken out): the
             # core fitted beside the creep. Started from the core fitted without it (which
             # took up what it could of the creep), the refits can stay in that core's basin,
-            # at several times the accepted model's error on both parts
-            # (the charging-current channel, when the model has one, comes first)
+            # at several times the accepted model's error on both parts. The output gains
+            # kept: the charging current's (first, when the model has one) and the model's
+            # own relaxations'
             k = len(before.output_taus_s)
             core = copy_with(after, output_taus_s=tuple(after.output_taus_s[:k]),
                              output_coef_=after.output_coef_[:int(after.output_rate) + k])
