@@ -4,6 +4,7 @@ clean plant's, the simulated and wall time, and each proposed experiment's lengt
 it decides. Prints figures; not part of the pass/fail suite.
 
     .venv/bin/python benchmarks/bench_investigate.py [--case creep ...] [--rate-hz 50] [--graph]
+    .venv/bin/python benchmarks/bench_investigate.py --case dead_zone --seeds 0 1 2 3 4 5 6 7
     .venv/bin/python benchmarks/bench_investigate.py --twin-of REPORT_DIR
 
 ``--graph`` runs each round through the lock-step ROS graph (``ipmc bringup --sim --lockstep
@@ -18,6 +19,10 @@ diagnosis's final held-out error on the clean plant under the last round's input
 under every round's input is diagnosed the same way): the error left when nothing is missing
 (goal: the investigation's final error within 1.2 x it); what the diagnosis found there is
 printed beside it.
+
+``--seeds`` runs each case on several seeds and closes with how often the found parameters'
+95 % intervals held the plant's values: a calibrated interval holds it on about 95 % of
+them.
 
 ``--twin-of`` takes the report folder of an investigation run elsewhere (through the rig
 emulator: ``ipmc investigate --rig PTY --report DIR``) and prints the same comparison: the
@@ -112,17 +117,23 @@ def plant_value(effect: str, key: str, rate_hz: float) -> float:
     return round(value * rate_hz) / rate_hz if key == "delay_s" else value
 
 
-def within_intervals(inv: Investigation, rate_hz: float) -> str:
-    """Whether each found effect's 95 % intervals hold the plant's values."""
+def interval_checks(inv: Investigation, rate_hz: float) -> list[tuple]:
+    """Each round's accepted effects' parameters as (effect, key, the plant's value, 95 %
+    interval's ends)."""
     out = []
     for rnd in inv.rounds:
         for name, p in rnd.verdicts.params.items():
             for key, ci in INTERVAL_KEYS.get(name, ()):
-                true = plant_value(name, key, rate_hz)
                 lo, hi = p.get(ci, (float("nan"), float("nan")))
-                out.append(f"{key} {true:g} in [{lo:.4g}, {hi:.4g}]: "
-                           f"{'yes' if lo <= true <= hi else 'NO'}")
-    return "; ".join(out) or "-"
+                out.append((name, key, plant_value(name, key, rate_hz), lo, hi))
+    return out
+
+
+def within_intervals(inv: Investigation, rate_hz: float) -> str:
+    """Whether each found effect's 95 % intervals hold the plant's values."""
+    return "; ".join(f"{key} {true:g} in [{lo:.4g}, {hi:.4g}]: "
+                     f"{'yes' if lo <= true <= hi else 'NO'}"
+                     for _, key, true, lo, hi in interval_checks(inv, rate_hz)) or "-"
 
 
 def found_params(inv: Investigation) -> str:
@@ -157,10 +168,19 @@ def clean_diagnosis(runs, dt_s: float):
     return diagnose_records(records)
 
 
+@dataclass(frozen=True)
+class CaseResult:
+    """One investigated case: the lines that report it, whether it named the plant's effects
+    (and nothing else), and whether each parameter's 95 % interval holds the plant's value."""
+
+    lines: list[str]
+    right: bool
+    covered: tuple[bool, ...]
+
+
 def run_case(case: Case, rate_hz: float, seed: int, out: Path, together: bool = False,
-             graph: bool = False) -> list[str]:
-    """Investigate one case (in process, or through the lock-step graph at its rate); the
-    lines that report it."""
+             graph: bool = False) -> CaseResult:
+    """Investigate one case (in process, or through the lock-step graph at its rate)."""
     runner = (GraphRunner(effects=list(case.effects)) if graph else
               InProcessRunner(list(case.effects), seed=seed, rate_hz=rate_hz))
     first = (smooth_input(rate_hz, seed, out / "round_1") if case.smooth else
@@ -198,7 +218,22 @@ def run_case(case: Case, rate_hz: float, seed: int, out: Path, together: bool = 
                                  for p in probes[:len(probes) // 2])
                      + f" -> {rnd.decided or 'nothing decided'}")
         lines += [f"    {n}: {rnd.verdicts.reasons[n]}" for n in rnd.undecided]
-    return lines
+    return CaseResult(lines, sorted(inv.effects_found) == sorted(case.effects),
+                      tuple(lo <= true <= hi for name, _, true, lo, hi
+                            in interval_checks(inv, rate_hz) if name in case.effects))
+
+
+def coverage(name: str, seeds: list[int], results: list[CaseResult]) -> str:
+    """A case over several seeds: how often it named the plant's effect (and nothing else),
+    and there how often the 95 % intervals of its parameters held the plant's values (a
+    calibrated interval: about 95 % of them)."""
+    right = [s for s, r in zip(seeds, results, strict=True) if r.right]
+    checks = [(s, c) for s, r in zip(seeds, results, strict=True) if r.right for c in r.covered]
+    held = sum(c for _, c in checks)
+    missed = sorted({s for s, c in checks if not c})
+    return (f"{name}: effects named on {len(right)} / {len(seeds)} seeds; the plant's values "
+            f"within the 95 % intervals {held} / {len(checks)} (seeds missed: "
+            f"{', '.join(map(str, missed)) or 'none'})")
 
 
 def twin_of(report: Path, seed: int) -> list[str]:
@@ -232,6 +267,9 @@ def main() -> int:
                    help="cases to run (default all)")
     p.add_argument("--rate-hz", type=float, default=50.0)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seeds", type=int, nargs="+", metavar="N",
+                   help="run each case on each of these seeds and close with how often the "
+                        "intervals held the plant's values (their calibration)")
     p.add_argument("--together", action="store_true",
                    help="each round diagnoses every record so far at once (ipmc diagnose "
                         "--data A --data B), not the newest record alone")
@@ -248,13 +286,21 @@ def main() -> int:
     if args.graph:
         args.rate_hz = GraphRunner.rate_hz
     t0 = time.perf_counter()
+    seeds = args.seeds or [args.seed]
+    summary = []
     with threadpool_limits(1), tempfile.TemporaryDirectory() as tmp:
         for name in args.case or list(CASES):
-            for line in run_case(CASES[name], args.rate_hz, args.seed, Path(tmp) / name,
-                                 args.together, args.graph):
-                print(line, flush=True)
-    print(f"total wall time {time.perf_counter() - t0:.0f} s at {args.rate_hz:g} Hz, seed "
-          f"{args.seed}")
+            results = []
+            for seed in seeds:
+                results.append(run_case(CASES[name], args.rate_hz, seed,
+                                        Path(tmp) / f"{name}_{seed}", args.together,
+                                        args.graph))
+                print("\n".join(results[-1].lines), flush=True)
+            summary.append(coverage(name, seeds, results))
+    if len(seeds) > 1:
+        print("\n".join(summary))
+    print(f"total wall time {time.perf_counter() - t0:.0f} s at {args.rate_hz:g} Hz, "
+          f"seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}")
     return 0
 
 
