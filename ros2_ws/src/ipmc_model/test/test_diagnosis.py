@@ -535,6 +535,32 @@ def test_a_dead_zone_narrower_than_its_scan_resolves_is_outside_its_range():
     assert found[0.3].params["width_v"] == pytest.approx(0.3, abs=0.05)
 
 
+def test_a_delay_whose_profile_adds_less_than_the_sampling_is_outside_its_range():
+    """A delay whose profile's best fit adds fewer than ``MIN_DELAY_SAMPLES`` is within the
+    sampling itself (zero-order hold, sensor): the block took up a misfit, and is not named;
+    on a delayed plant the same profile keeps the delay."""
+    from ipmc_model.diagnosis.candidates import MIN_DELAY_SAMPLES, copy_with
+    from ipmc_model.hysteresis import GeneralizedPI
+
+    day1 = plant_record({}, 150.0, 4)
+    model = GeneralizedPI(dt_s=1 / RATE).fit(day1.u_v, day1.y_mm)
+    delay = CANDIDATES["delay"]
+    found = {}
+    # accepted 3 samples above the model's own on the plant without a delay (the profile
+    # then reaches down to none added), and at the plant's delay on the delayed one
+    for plant_s, added in ((0.0, 3), (0.2, int(round(0.2 * RATE)))):
+        day2 = plant_record({"delay": {"delay_s": plant_s}} if plant_s else {}, 150.0, 5)
+        rec = DiagnosisRecord(day2.t_s, day2.u_v, day2.y_mm, DiagnosisConfig())
+        d = int(model.delay_samples_) + added
+        found[plant_s] = delay.refine(model, copy_with(model, delay_samples_=d,
+                                                       delay_s=d / RATE), rec, True)
+    assert "within the sampling itself" in found[0.0].outside
+    own_s = model.delay_samples_ / RATE
+    assert found[0.0].params["delay_ci_s"][0] < own_s + MIN_DELAY_SAMPLES / RATE
+    assert found[0.2].outside is None
+    assert found[0.2].params["delay_s"] - own_s == pytest.approx(0.2, abs=2 / RATE)
+
+
 def test_cli_writes_the_report_and_a_model_that_runs(tmp_path, capsys):
     data = save_csv(plant_record({"delay": {"delay_s": 0.2}}, 150.0, 6), tmp_path / "d.csv")
     out = tmp_path / "report"

@@ -707,13 +707,16 @@ class Delay(Candidate):
         prof = Profile.traced(grid * dt, lambda v: at_values(
             after, rec, given, delay_samples_=int(round(v / dt)), delay_s=v), rec, dt)
         _, ends, open_ends = prof.interval()
-        # the accepted block stays: a best point without the added delay is not kept
         best = prof.best
-        kept = (better_fit(best, after, rec) if best.delay_samples_ >= int(
-            before.delay_samples_) + MIN_DELAY_SAMPLES else None)
+        added = int(best.delay_samples_) - int(before.delay_samples_)
+        kept = better_fit(best, after, rec) if added >= MIN_DELAY_SAMPLES else None
+        outside = (None if added >= MIN_DELAY_SAMPLES else
+                   f"its profile's best fit adds {added} sample(s) of delay, within the "
+                   f"sampling itself (fewer than {MIN_DELAY_SAMPLES}): the block took up a "
+                   f"misfit of the model, not a transport delay")
         return Refined({"delay_s": float((kept or after).delay_samples_ * dt),
                         "delay_ci_s": [max(ends[0], 0.0), ends[1]],
-                        "delay_ci_open": list(open_ends)}, kept)
+                        "delay_ci_open": list(open_ends)}, kept, outside)
 
     def around(self, model, rec):
         best, best_sse = 0, fit_sse(model, rec)
