@@ -117,15 +117,16 @@ def plant_value(effect: str, key: str, rate_hz: float) -> float:
     return round(value * rate_hz) / rate_hz if key == "delay_s" else value
 
 
-def interval_checks(inv: Investigation, rate_hz: float) -> list[tuple]:
-    """Each round's accepted effects' parameters as (effect, key, the plant's value, 95 %
-    interval's ends)."""
+def interval_checks(inv: Investigation, rate_hz: float
+                    ) -> list[tuple[str, str, float, float, float]]:
+    """Each accepted effect's parameters, as the latest round that accepted it estimated
+    them: (effect, key, the plant's value, 95 % interval's ends)."""
+    latest = {name: p for rnd in inv.rounds for name, p in rnd.verdicts.params.items()}
     out = []
-    for rnd in inv.rounds:
-        for name, p in rnd.verdicts.params.items():
-            for key, ci in INTERVAL_KEYS.get(name, ()):
-                lo, hi = p.get(ci, (float("nan"), float("nan")))
-                out.append((name, key, plant_value(name, key, rate_hz), lo, hi))
+    for name, p in latest.items():
+        for key, ci in INTERVAL_KEYS.get(name, ()):
+            lo, hi = p.get(ci, (float("nan"), float("nan")))
+            out.append((name, key, plant_value(name, key, rate_hz), lo, hi))
     return out
 
 

@@ -714,7 +714,9 @@ class Delay(Candidate):
                    f"its profile's best fit adds {added} sample(s) of delay, within the "
                    f"sampling itself (fewer than {MIN_DELAY_SAMPLES}): the block took up a "
                    f"misfit of the model, not a transport delay")
-        return Refined({"delay_s": float((kept or after).delay_samples_ * dt),
+        # outside: the profile's estimate is what the report gives, beside its interval
+        shown = best if outside else (kept or after)
+        return Refined({"delay_s": float(shown.delay_samples_ * dt),
                         "delay_ci_s": [max(ends[0], 0.0), ends[1]],
                         "delay_ci_open": list(open_ends)}, kept, outside)
 
