@@ -709,13 +709,14 @@ class Delay(Candidate):
         _, ends, open_ends = prof.interval()
         best = prof.best
         added = int(best.delay_samples_) - int(before.delay_samples_)
-        kept = better_fit(best, after, rec) if added >= MIN_DELAY_SAMPLES else None
-        outside = (None if added >= MIN_DELAY_SAMPLES else
+        inside = added >= MIN_DELAY_SAMPLES
+        kept = better_fit(best, after, rec) if inside else None
+        outside = (None if inside else
                    f"its profile's best fit adds {added} sample(s) of delay, within the "
                    f"sampling itself (fewer than {MIN_DELAY_SAMPLES}): the block took up a "
                    f"misfit of the model, not a transport delay")
-        # outside: the profile's estimate is what the report gives, beside its interval
-        shown = best if outside else (kept or after)
+        # outside: the report gives the profile's estimate, beside its interval
+        shown = (kept or after) if inside else best
         return Refined({"delay_s": float(shown.delay_samples_ * dt),
                         "delay_ci_s": [max(ends[0], 0.0), ends[1]],
                         "delay_ci_open": list(open_ends)}, kept, outside)
