@@ -7,8 +7,15 @@ from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile, QoSReli
 SAMPLE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
                         reliability=QoSReliabilityPolicy.RELIABLE,
                         durability=QoSDurabilityPolicy.VOLATILE)
+# A command's subscribers that act on it (driver, plant) keep the last 10: only the latest
+# matters to an actuator.
 COMMAND_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
                          reliability=QoSReliabilityPolicy.RELIABLE)
+# A command's publishers keep 100 (1 s at 100 Hz) in their history: a reliable keep-last writer
+# drops the oldest unacknowledged sample once its history is full, so a recorder stalled for
+# more than the history (a busy machine, a split being closed) would lose commands.
+COMMAND_WRITER_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
+                                reliability=QoSReliabilityPolicy.RELIABLE)
 DIAGNOSTICS_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
                              reliability=QoSReliabilityPolicy.RELIABLE)
 

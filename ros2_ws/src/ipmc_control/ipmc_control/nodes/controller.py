@@ -83,7 +83,7 @@ from ipmc_driver.node_runtime import (
     positive,
     run_node,
 )
-from ipmc_driver.qos import COMMAND_QOS, DIAGNOSTICS_QOS, PAIRED_SAMPLE_QOS, SAMPLE_QOS
+from ipmc_driver.qos import COMMAND_WRITER_QOS, DIAGNOSTICS_QOS, PAIRED_SAMPLE_QOS, SAMPLE_QOS
 
 # Inputs: reliable and deep like their publishers (docs/interfaces.md), so that a lock-step
 # burst loses no sample; the loop keys references and feedforwards by stamp.
@@ -176,9 +176,9 @@ class Controller(Node):
         self.deadline_misses = 0
         self.step_us: deque[float] = deque(maxlen=2000)
 
-        self.pub_command = self.create_publisher(Float64, "/ipmc/command", COMMAND_QOS)
+        self.pub_command = self.create_publisher(Float64, "/ipmc/command", COMMAND_WRITER_QOS)
         self.pub_command_stamped = (
-            self.create_publisher(Vector3Stamped, "/ipmc/command_stamped", COMMAND_QOS)
+            self.create_publisher(Vector3Stamped, "/ipmc/command_stamped", COMMAND_WRITER_QOS)
             if self.trigger == "measurement" else None)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
         # trigger:=measurement pairs references and feedforwards by stamp and waits for them:

@@ -38,7 +38,7 @@ from ipmc_driver.node_runtime import (
     positive,
     run_node,
 )
-from ipmc_driver.qos import COMMAND_QOS, SAMPLE_QOS
+from ipmc_driver.qos import COMMAND_WRITER_QOS, SAMPLE_QOS
 
 PARAMETERS = {
     "kind": ParameterSpec("mixed", " | ".join((*KINDS, "file")), True,
@@ -78,9 +78,9 @@ class ExcitationNode(Node):
         self._linger_s, self._exit_at_end = p["linger_s"], p["exit_at_end"]
         self._quiet = False
         self._held: PointStamped | None = None   # sim time: the sample waiting for the start
-        self.pub = self.create_publisher(Float64, "/ipmc/command", COMMAND_QOS)
+        self.pub = self.create_publisher(Float64, "/ipmc/command", COMMAND_WRITER_QOS)
         self.pub_stamped = self.create_publisher(Vector3Stamped, "/ipmc/command_stamped",
-                                                 COMMAND_QOS)
+                                                 COMMAND_WRITER_QOS)
         self._gate = MatchGate(self.count_subscribers,
                                [(self.pub, "/ipmc/command", p["min_subscribers"])],
                                warn=self.get_logger().warn)
