@@ -563,6 +563,31 @@ def test_a_delay_whose_profile_adds_less_than_the_sampling_is_outside_its_range(
     assert found[0.2].params["delay_s"] - own_s == pytest.approx(0.2, abs=2 / RATE)
 
 
+def test_a_dead_zone_whose_profile_is_best_without_one_is_outside_its_range():
+    """A dead zone whose profile's best width adds less than the scan's resolution is not a
+    dead zone (the block took up a misfit), whatever width was accepted; on a plant with a
+    dead zone the same profile keeps its width."""
+    from ipmc_model.diagnosis.candidates import DEAD_ZONE_TOL_V, copy_with
+    from ipmc_model.hysteresis import GeneralizedPI
+
+    day1 = plant_record({}, 150.0, 4)
+    model = GeneralizedPI(dt_s=1 / RATE).fit(day1.u_v, day1.y_mm)
+    found = {}
+    # accepted 0.1 V on the plant without a dead zone (the profile then reaches down to none),
+    # and at the plant's width on the one with a dead zone
+    for plant_v, accepted_v in ((0.0, 0.1), (0.3, 0.3)):
+        day2 = plant_record({"dead_zone": {"width_v": plant_v}} if plant_v else {}, 150.0, 5)
+        rec = DiagnosisRecord(day2.t_s, day2.u_v, day2.y_mm, DiagnosisConfig())
+        found[plant_v] = CANDIDATES["dead_zone"].refine(
+            model, copy_with(model, dead_zone_v=accepted_v), rec, True)
+    assert "below the scan's resolution" in found[0.0].outside
+    lo, hi = found[0.0].params["width_ci_v"]
+    assert lo < DEAD_ZONE_TOL_V
+    assert lo <= found[0.0].params["width_v"] <= hi   # the estimate reported is the profile's
+    assert found[0.3].outside is None
+    assert found[0.3].params["width_v"] == pytest.approx(0.3, abs=0.03)
+
+
 def test_cli_writes_the_report_and_a_model_that_runs(tmp_path, capsys):
     data = save_csv(plant_record({"delay": {"delay_s": 0.2}}, 150.0, 6), tmp_path / "d.csv")
     out = tmp_path / "report"

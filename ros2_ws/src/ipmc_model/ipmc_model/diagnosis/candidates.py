@@ -797,14 +797,17 @@ class DeadZone(Candidate):
         prof = Profile.traced(grid, lambda w: at_values(after, rec, given, dead_zone_v=w),
                               rec, DEAD_ZONE_TOL_V)
         _, ends, open_ends = prof.interval()
-        best = prof.best   # the accepted block stays: a best point without it is not kept
-        kept = better_fit(best, after, rec) if best.dead_zone_v > lo else None
-        added = float((kept or after).dead_zone_v) - lo
-        outside = (None if added >= DEAD_ZONE_TOL_V else
-                   f"its width ({1000 * added:.1f} mV) is below the scan's resolution "
-                   f"({1000 * DEAD_ZONE_TOL_V:g} mV, a bending below the sensor's reach): the "
-                   f"block took up a misfit of the model, not a dead zone")
-        return Refined({"width_v": float((kept or after).dead_zone_v),
+        best = prof.best
+        added = float(best.dead_zone_v) - lo
+        inside = added >= DEAD_ZONE_TOL_V
+        kept = better_fit(best, after, rec) if inside else None
+        outside = (None if inside else
+                   f"its profile's best width ({1000 * added:.1f} mV) is below the scan's "
+                   f"resolution ({1000 * DEAD_ZONE_TOL_V:g} mV, a bending below the sensor's "
+                   f"reach): the block took up a misfit of the model, not a dead zone")
+        # outside: the report gives the profile's estimate, beside its interval
+        shown = (kept or after) if inside else best
+        return Refined({"width_v": float(shown.dead_zone_v),
                         "width_ci_v": [max(ends[0], 0.0), ends[1]],
                         "width_ci_open": list(open_ends)}, kept, outside)
 
