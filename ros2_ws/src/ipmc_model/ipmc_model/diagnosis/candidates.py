@@ -718,7 +718,7 @@ class Delay(Candidate):
         # outside: the report gives the profile's estimate, beside its interval
         shown = (kept or after) if inside else best
         return Refined({"delay_s": float(shown.delay_samples_ * dt),
-                        "delay_ci_s": [max(ends[0], 0.0), ends[1]],
+                        "delay_ci_s": [max(ends[0], int(before.delay_samples_) * dt), ends[1]],
                         "delay_ci_open": list(open_ends)}, kept, outside)
 
     def around(self, model, rec):
@@ -802,13 +802,13 @@ class DeadZone(Candidate):
         inside = added >= DEAD_ZONE_TOL_V
         kept = better_fit(best, after, rec) if inside else None
         outside = (None if inside else
-                   f"its profile's best width ({1000 * added:.1f} mV) is below the scan's "
-                   f"resolution ({1000 * DEAD_ZONE_TOL_V:g} mV, a bending below the sensor's "
-                   f"reach): the block took up a misfit of the model, not a dead zone")
+                   f"its profile's best fit adds {1000 * added:.1f} mV of dead zone, below "
+                   f"the scan's resolution ({1000 * DEAD_ZONE_TOL_V:g} mV, a bending below the "
+                   f"sensor's reach): the block took up a misfit of the model, not a dead zone")
         # outside: the report gives the profile's estimate, beside its interval
         shown = (kept or after) if inside else best
         return Refined({"width_v": float(shown.dead_zone_v),
-                        "width_ci_v": [max(ends[0], 0.0), ends[1]],
+                        "width_ci_v": [max(ends[0], lo), ends[1]],
                         "width_ci_open": list(open_ends)}, kept, outside)
 
     def around(self, model, rec):
