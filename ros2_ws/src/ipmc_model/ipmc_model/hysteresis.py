@@ -576,18 +576,6 @@ class GeneralizedPI:
         self.fit_seconds_ = time.perf_counter() - t0
         return self
 
-    def cv_rmse(self, u, y) -> float:
-        """The blocked free-run CV error on (u, y) of the model as it is now, at its ridge
-        weight: ``cv_`` was taken at some stage of the last fit (a fresh fit scores its ridge
-        grid before the final refit), so two fits are compared on this instead."""
-        u, y = np.asarray(u, float), np.asarray(y, float)
-        alphas = self.alphas
-        self.alphas = (self.cv_.alpha,)
-        try:
-            return float(self._cross_validate(u, y, self._packed()).rmse[0])
-        finally:
-            self.alphas = alphas
-
     def _packed(self) -> np.ndarray:
         """The learned parameters as the joint fit's vector (the inverse of ``_unpack``)."""
         drift = ([self.drift_gain_per_s_, self.drift_offset_mm_per_s_] if self.drift else [])

@@ -62,19 +62,6 @@ def test_warm_start_keeps_the_structure_and_fits_on_over_the_longer_record():
     assert _rmse(m.simulate(u), y) <= 1.01 * first[0]
 
 
-def test_cv_rmse_scores_the_model_as_it_is_at_its_ridge_weight(rig_model):
-    """``cv_rmse`` is the blocked free-run CV error of the current parameters: the CV's
-    score at the ridge weight on the fit's own record, and worse for a spoiled map."""
-    _, u = mixed(180.0, 100.0, 3.0, (0.02, 0.8), seed=1)
-    y = IpmcPlant(seed=1).run(u).y_mm
-    m = copy.deepcopy(rig_model)
-    score = m.cv_rmse(u, y)
-    assert m.alphas == rig_model.alphas   # the ridge grid is left as it was
-    assert score == pytest.approx(min(rig_model.cv_.rmse), rel=0.05)
-    m.map_coef_ = 1.2 * m.map_coef_
-    assert m.cv_rmse(u, y) > 1.5 * score
-
-
 def test_free_run_on_another_input_is_near_the_noise_floor(rig_model):
     _, u = random_sine(60.0, 100.0, 3.0, band_hz=(0.02, 0.8), seed=2)
     y = IpmcPlant(seed=2).run(u).y_mm
