@@ -41,20 +41,18 @@ CORE_NFEV = 25
 #: The charging time constant's starts of the core's joint fit, as multiples of its first
 #: guess (30 samples): a fit of 25 iterations stays in the basin it starts in (on a smooth
 #: input and a delayed plant one start ends at 18x the other's fit error), and at 50 Hz the
-#: guess (0.6 s) lies above an IPMC's charging time (about 0.3 s). Each start is converged
-#: in its basin, then the lower blocked free-run CV error wins: compared where the 25
-#: iterations happened to stop, the CV picked the worse basin on a third of clean records;
-#: the lower fit error alone picked, on one record, a model whose free run on another day's
-#: input was 9x the other's.
+#: guess (0.6 s) lies above an IPMC's charging time (about 0.3 s). The lower blocked
+#: free-run CV error wins: the lower fit error alone picked, on one record, a model whose
+#: free run on another day's input was 9x the other's.
 CORE_TAU_STARTS = (1.0 / 3.0, 1.0)
 
 
 def core_model(rec: DiagnosisRecord) -> GeneralizedPI:
     """The diagnosis's own model: a GPI with the actuator's fast time scales only (charging,
     back-relaxation: below ``creep_min_tau_s``), no delay and no optional stage, fitted on the
-    fit rows from each of :data:`CORE_TAU_STARTS` and converged there (side by side), the one
-    with the lower blocked free-run CV error kept; the candidates are the stages it leaves
-    out.
+    fit rows from each of :data:`CORE_TAU_STARTS` (side by side), the one with the lower
+    blocked free-run CV error kept and converged there; the candidates are the stages it
+    leaves out.
 
     It carries no direction memory: on a fit part of a few thousand samples the direction
     channels' weights are poorly determined, and refits with a candidate's block (a delay
@@ -63,12 +61,12 @@ def core_model(rec: DiagnosisRecord) -> GeneralizedPI:
     taus = tuple(t for t in DEFAULT_MEMORY_TAUS_S if t < rec.config.creep_min_tau_s)
 
     def fit_from(factor: float) -> GeneralizedPI:
-        return converged(GeneralizedPI(memory_taus_s=taus, delay_s=0.0, dt_s=rec.dt_s,
-                                       direction_memory_v=(), max_nfev=CORE_NFEV,
-                                       start_tau_factors=(factor,)).fit(rec.u_fit, rec.y_fit),
-                         rec)
+        return GeneralizedPI(memory_taus_s=taus, delay_s=0.0, dt_s=rec.dt_s,
+                             direction_memory_v=(), max_nfev=CORE_NFEV,
+                             start_tau_factors=(factor,)).fit(rec.u_fit, rec.y_fit)
 
-    return min(fan_out(fit_from, CORE_TAU_STARTS), key=lambda m: min(m.cv_.rmse))
+    fits = fan_out(fit_from, CORE_TAU_STARTS)
+    return converged(min(fits, key=lambda m: min(m.cv_.rmse)), rec)
 
 
 def _given(model, rec: DiagnosisRecord) -> GeneralizedPI:
