@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import copy
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -517,6 +518,26 @@ def better_fit(model: GeneralizedPI, than: GeneralizedPI, rec: DiagnosisRecord
     return model if fit_sse(model, rec) < fit_sse(than, rec) else None
 
 
+def judged_on_profile(prof: Profile, after: GeneralizedPI, rec: DiagnosisRecord, own: float,
+                      value: Callable[[GeneralizedPI], float], min_added: float,
+                      keys: tuple[str, str, str], why: Callable[[float], str]) -> Refined:
+    """An accepted block judged on its profile over one parameter (``value`` of a model, in
+    the unit of the profile's grid): outside the effect's physical range when the profile's
+    best fit adds less than ``min_added`` to the model's ``own`` value (``why(added)`` says
+    so), else the best point kept where it fits better than ``after``. ``keys``: the names of
+    the estimate, its 95 % interval (from ``own`` up) and which ends are open. Outside, the
+    estimate reported is the profile's, beside its interval."""
+    _, ends, open_ends = prof.interval()
+    best = prof.best
+    added = float(value(best)) - own
+    inside = added >= min_added
+    kept = better_fit(best, after, rec) if inside else None
+    shown = (kept or after) if inside else best
+    estimate, interval, is_open = keys
+    return Refined({estimate: float(value(shown)), interval: [max(ends[0], own), ends[1]],
+                    is_open: list(open_ends)}, kept, None if inside else why(added))
+
+
 #: The creep profile's finest step in ln tau (1 %: far inside any interval a record gives).
 CREEP_LOG_TAU_RESOLUTION = 0.01
 
@@ -706,20 +727,14 @@ class Delay(Candidate):
                          min(d + PROFILE_HALF_POINTS * step, top) + 1, step)
         prof = Profile.traced(grid * dt, lambda v: at_values(
             after, rec, given, delay_samples_=int(round(v / dt)), delay_s=v), rec, dt)
-        _, ends, open_ends = prof.interval()
-        best = prof.best
-        added = int(best.delay_samples_) - int(before.delay_samples_)
-        inside = added >= MIN_DELAY_SAMPLES
-        kept = better_fit(best, after, rec) if inside else None
-        outside = (None if inside else
-                   f"its profile's best fit adds {added} sample(s) of delay, within the "
-                   f"sampling itself (fewer than {MIN_DELAY_SAMPLES}): the block took up a "
-                   f"misfit of the model, not a transport delay")
-        # outside: the report gives the profile's estimate, beside its interval
-        shown = (kept or after) if inside else best
-        return Refined({"delay_s": float(shown.delay_samples_ * dt),
-                        "delay_ci_s": [max(ends[0], int(before.delay_samples_) * dt), ends[1]],
-                        "delay_ci_open": list(open_ends)}, kept, outside)
+        # whole samples, compared in seconds: MIN_DELAY_SAMPLES or more added is more than
+        # MIN_DELAY_SAMPLES - 0.5 (clear of the rounding of a product with dt)
+        return judged_on_profile(
+            prof, after, rec, int(before.delay_samples_) * dt, lambda m: m.delay_samples_ * dt,
+            (MIN_DELAY_SAMPLES - 0.5) * dt, ("delay_s", "delay_ci_s", "delay_ci_open"),
+            lambda added: f"its profile's best fit adds {round(added / dt)} sample(s) of delay, "
+                          f"within the sampling itself (fewer than {MIN_DELAY_SAMPLES}): the "
+                          f"block took up a misfit of the model, not a transport delay")
 
     def around(self, model, rec):
         best, best_sse = 0, fit_sse(model, rec)
@@ -796,20 +811,13 @@ class DeadZone(Candidate):
             -PROFILE_HALF_POINTS, PROFILE_HALF_POINTS + 1), lo, hi))
         prof = Profile.traced(grid, lambda w: at_values(after, rec, given, dead_zone_v=w),
                               rec, DEAD_ZONE_TOL_V)
-        _, ends, open_ends = prof.interval()
-        best = prof.best
-        added = float(best.dead_zone_v) - lo
-        inside = added >= DEAD_ZONE_TOL_V
-        kept = better_fit(best, after, rec) if inside else None
-        outside = (None if inside else
-                   f"its profile's best fit adds {1000 * added:.1f} mV of dead zone, below "
-                   f"the scan's resolution ({1000 * DEAD_ZONE_TOL_V:g} mV, a bending below the "
-                   f"sensor's reach): the block took up a misfit of the model, not a dead zone")
-        # outside: the report gives the profile's estimate, beside its interval
-        shown = (kept or after) if inside else best
-        return Refined({"width_v": float(shown.dead_zone_v),
-                        "width_ci_v": [max(ends[0], lo), ends[1]],
-                        "width_ci_open": list(open_ends)}, kept, outside)
+        return judged_on_profile(
+            prof, after, rec, lo, lambda m: m.dead_zone_v, DEAD_ZONE_TOL_V,
+            ("width_v", "width_ci_v", "width_ci_open"),
+            lambda added: f"its profile's best fit adds {1000 * added:.1f} mV of dead zone, "
+                          f"below the scan's resolution ({1000 * DEAD_ZONE_TOL_V:g} mV, a "
+                          f"bending below the sensor's reach): the block took up a misfit of "
+                          f"the model, not a dead zone")
 
     def around(self, model, rec):
         m, w = scalar_around(model, rec, "dead_zone_v", model.dead_zone_v,
