@@ -12,8 +12,8 @@ SAMPLE_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
 COMMAND_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
                          reliability=QoSReliabilityPolicy.RELIABLE)
 # A command's publishers keep 100 (1 s at 100 Hz) in their history: a reliable keep-last writer
-# drops the oldest unacknowledged sample once its history is full, so a recorder stalled for
-# more than the history (a busy machine, a split being closed) would lose commands.
+# drops the oldest unacknowledged sample once its history is full, so a reader whose
+# acknowledgements lag by more than the history (a process starved of CPU) would lose commands.
 COMMAND_WRITER_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=100,
                                 reliability=QoSReliabilityPolicy.RELIABLE)
 DIAGNOSTICS_QOS = QoSProfile(history=QoSHistoryPolicy.KEEP_LAST, depth=10,
