@@ -636,10 +636,13 @@ def test_cli_refuses_millivolts_and_warns_of_metres_before_any_work(tmp_path, ca
     assert not (tmp_path / "r" / "summary.json").exists()
 
 
-def test_the_next_experiment_makes_creep_delay_and_dead_zone_testable():
+def test_the_next_experiment_makes_each_effect_testable():
     """Probes assembled after a record that could test none of them: the new record's
-    excitation lets each be tested, and the deciding part is the held-out part."""
+    excitation lets each be tested, and the deciding part is the held-out part; the rate
+    dependence's sweep alone has the fast input it needs, and a drift's probe opens and
+    closes the experiment."""
     from ipmc_model.diagnosis.candidates import CANDIDATES as C
+    from ipmc_model.diagnosis.candidates import fast_input_reason
     from ipmc_model.diagnosis.config import DiagnosisConfig
     from ipmc_model.diagnosis.experiment import assemble
     from ipmc_model.diagnosis.record import DiagnosisRecord
@@ -654,18 +657,24 @@ def test_the_next_experiment_makes_creep_delay_and_dead_zone_testable():
     cfg = DiagnosisConfig()
     rec = DiagnosisRecord(run.t_s, u, run.y_mm, cfg)
     model = core_model(rec)
-    names = ("creep", "delay", "dead_zone")
+    names = ("creep", "delay", "dead_zone", "rate_dependence")
     assert all(C[n].not_testable(rec, model, False) for n in names)
     probes = [C[n].probe(rec, model, CandidateResult(n, Outcome.NOT_TESTABLE, "", 1))
-              for n in names]
+              for n in (*names, "drift")]
+    sweep = IpmcPlant(seed=5, dt_s=1 / RATE).run(probes[3].u_v)
+    alone = DiagnosisRecord(sweep.t_s, probes[3].u_v, sweep.y_mm, cfg)
+    assert fast_input_reason(alone, model, "rate-dependent bending") is None
     x = assemble(probes, rec)
-    assert np.max(np.abs(x.u_v)) <= 3.0 and x.decides == sorted(names)
+    assert np.max(np.abs(x.u_v)) <= 3.0 and x.decides == sorted((*names, "drift"))
+    assert x.parts[0].effect == x.parts[-1].effect == "drift"
+    n = probes[4].u_v.size
+    assert np.array_equal(x.u_v[:n], x.u_v[-n:]) and np.ptp(x.u_v[:n]) > 2.0
     new = IpmcPlant(seed=4, dt_s=1 / RATE).run(x.u_v)
     rec2 = DiagnosisRecord(new.t_s, x.u_v, new.y_mm, cfg)
     model2 = core_model(rec2)
-    assert [C[n].not_testable(rec2, model2, False) for n in names] == [None] * 3
+    assert [C[n].not_testable(rec2, model2, False) for n in names] == [None] * len(names)
     held = [p for p in x.parts if p.start_s >= rec2.segments[0].cut * rec2.dt_s - 1e-9]
-    assert {p.effect for p in held} == set(names)
+    assert {p.effect for p in held} == {*names, "drift"}
 
 
 def test_a_record_of_an_experiment_judges_each_effect_on_its_own_probe():
@@ -697,6 +706,28 @@ def test_a_record_of_an_experiment_judges_each_effect_on_its_own_probe():
     assert np.array_equal(rec.judged_for("drift"), rec.judged)
     plain = DiagnosisRecord(run.t_s, x.u_v, run.y_mm, cfg)   # no parts: every judged row
     assert np.array_equal(plain.judged_for("delay"), plain.judged)
+
+
+def test_a_drift_is_judged_on_its_probe_at_the_two_ends_of_an_experiment():
+    """A drift's probe opens and closes the experiment: on an actuator whose gain fades,
+    the diagnosis of the experiment's record names the drift on that probe's held-out rows
+    (the same levels bend less at the end than at the start), and nothing on a steady one."""
+    from ipmc_model.diagnosis.experiment import assemble
+    from ipmc_model.diagnosis.search import diagnose_records
+
+    first = plant_record({}, 60.0, 1)
+    rec0 = DiagnosisRecord(first.t_s, first.u_v, first.y_mm, DiagnosisConfig())
+    x = assemble([CANDIDATES["drift"].probe(rec0, core_model(rec0), None)], rec0)
+    fading = {"drift": {"gain_loss_per_min": 0.05, "offset_mm_per_min": 0.0}}
+    found = {}
+    for name, fx in (("fading", fading), ("steady", {})):
+        run = IpmcPlant(effects=fx, seed=2, dt_s=1 / RATE).run(x.u_v)
+        d = diagnose_records([(name, run.t_s, x.u_v, run.y_mm, x.parts)],
+                             candidates=["drift"])
+        found[name] = d.effects_found
+        res = next(r for r in d.candidates if r.name == "drift")
+        assert "its probe's" in res.evidence.judged_on
+    assert found == {"fading": ["drift"], "steady": []}
 
 
 def test_cli_judges_the_experiment_a_record_played_on_its_probes(tmp_path, capsys):

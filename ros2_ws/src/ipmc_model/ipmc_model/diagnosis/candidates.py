@@ -33,7 +33,7 @@ from ..hysteresis import (
     estimate_delay,
     lowpass_bank,
 )
-from .experiment import Probe, crossings, holds, probe_level_v
+from .experiment import Probe, crossings, holds, probe_level_v, sweep
 from .parallel import fan_out
 from .record import DiagnosisRecord
 
@@ -261,6 +261,12 @@ PROBE_STEPS, PROBE_STEP_S = 8, 1.5
 #: Slow crossings of 0 V proposed for a dead zone: period (s, far slower than the charging)
 #: and cycles.
 CROSSING_PERIOD_S, CROSSING_CYCLES = 20.0, 2
+#: Levels of a drift's probe, as shares of the probe level, each held ``hold_min_s`` (the
+#: charging and the back-relaxation settled): the held levels show the gain, 0 V the offset.
+DRIFT_LEVELS = (1.0, -1.0, 0.5, -0.5, 0.0)
+#: A rate dependence's sweep runs an octave either side of the charging corner, with this
+#: many cycles in its lowest octave (the sweep spends the same time in each).
+SWEEP_LOW_CYCLES = 2
 
 
 @register
@@ -674,6 +680,15 @@ class Drift(Candidate):
     meaning = ("an offset and a gain that change steadily over the record (dehydration, "
                "temperature)")
 
+    def probe(self, rec, model, result):
+        a, hold_s = probe_level_v(rec), rec.config.hold_min_s
+        return Probe(self.name, holds(np.array(DRIFT_LEVELS) * a, hold_s, 1.0 / rec.dt_s),
+                     f"{len(DRIFT_LEVELS)} levels held {hold_s:g} s each (+-{a:.2f}, "
+                     f"+-{a / 2:.2f} and 0 V) at the experiment's start and again at its end: "
+                     f"a drift bends the same levels less or more at the end (its gain) and "
+                     f"moves where 0 V rests (its offset); the actuator's memory of the path "
+                     f"does not", ends=True)
+
     def refit(self, model, rec):
         # the two rates fitted jointly with the rest
         m = refit_with(model, rec, {"drift": True, "drift_gain_per_s_": 0.0,
@@ -834,6 +849,22 @@ class RateDependence(Candidate):
     def not_testable(self, rec, model, given):
         return unresolved_charging(rec, model) or fast_input_reason(
             rec, model, "rate-dependent bending")
+
+    def probe(self, rec, model, result):
+        if unresolved_charging(rec, model):
+            return None   # a faster sampling rate decides it, not an input
+        f_c = 1.0 / (2.0 * math.pi * model.charge_tau_s_)
+        f0, f1 = f_c / 2.0, min(2.0 * f_c, 0.125 / rec.dt_s)
+        if not f1 > f0:
+            return None
+        seconds = SWEEP_LOW_CYCLES / f0 * math.log2(f1 / f0)
+        a = probe_level_v(rec)
+        return Probe(self.name, sweep(a, f0, f1, seconds, 1.0 / rec.dt_s),
+                     f"a sine of +-{a:.2f} V swept from {f0:.2g} to {f1:.2g} Hz in "
+                     f"{seconds:.0f} s, an octave either side of the charging corner "
+                     f"({f_c:.2g} Hz): the bending that follows the charging current grows "
+                     f"along the sweep while the charge's falls, so the loops widen with "
+                     f"frequency")
 
     # the water dragged with the cations bends the strip on top of the charge's bending: a
     # charging-current channel added after the output map, one gain (mm per V/s). Inside the

@@ -9,9 +9,11 @@ plays them again as the held-out part, so that the diagnosis of the new record j
 effect on exactly the excitation that shows it, and the fit part has seen that excitation
 too (the judged rows stay within its range).
 
-Layout, with the diagnosis's split (``fit_share``): ``[base, first half] [probes] [base,
-second half] | [probes]``: the probes are ``1 - fit_share`` of the whole, so the last copy is
-the held-out part.
+Layout, with the diagnosis's split (``fit_share``): ``[end probes] [base, first half]
+[probes] [base, second half] | [probes] [end probes]``: the probes are ``1 - fit_share`` of
+the whole, so the last copies are the held-out part. An end probe (a drift's) opens and
+closes the experiment: what the same input bends differently at the two ends is what changed
+over the record.
 """
 
 from __future__ import annotations
@@ -41,6 +43,8 @@ class Probe:
     effect: str
     u_v: np.ndarray
     reason: str
+    #: Played at the experiment's start as well as in its held-out part, which it closes.
+    ends: bool = False
 
 
 @dataclass(frozen=True)
@@ -116,13 +120,15 @@ def assemble(probes: list[Probe], rec: DiagnosisRecord, seed: int = 0) -> Experi
     amp = min(max(abs(rec.excitation.u_min_v), abs(rec.excitation.u_max_v)), ACTUATOR_LIMIT_V)
     _, base = mixed(n_base / rate, rate, amp, seed=seed)
     half = base.size // 2
-    pieces = [("identification input, first half", "", base[:half],
-               "covers the record's range in amplitude and frequency for the core model")]
-    pieces += [(f"{p.effect} probe", p.effect, p.u_v, p.reason) for p in probes]
+    inner, ends = [p for p in probes if not p.ends], [p for p in probes if p.ends]
+    pieces = [(f"{p.effect} probe, at the start", p.effect, p.u_v, p.reason) for p in ends]
+    pieces.append(("identification input, first half", "", base[:half],
+                   "covers the record's range in amplitude and frequency for the core model"))
+    pieces += [(f"{p.effect} probe", p.effect, p.u_v, p.reason) for p in inner]
     pieces.append(("identification input, second half", "", base[half:],
                    "covers the record's range in amplitude and frequency for the core model"))
     pieces += [(f"{p.effect} probe, repeated as the held-out part", p.effect, p.u_v, p.reason)
-               for p in probes]
+               for p in inner + ends]
     parts, start = [], 0
     for name, effect, u, reason in pieces:
         parts.append(ExperimentPart(name, effect, start / rate, u.size / rate, reason))
@@ -185,3 +191,13 @@ def crossings(amplitude_v: float, period_s: float, cycles: int, rate_hz: float) 
     t = np.arange(int(round(cycles * period_s * rate_hz))) / rate_hz
     phase = (t / period_s) % 1.0
     return amplitude_v * (4.0 * np.abs(phase - 0.5) - 1.0)
+
+
+def sweep(amplitude_v: float, f0_hz: float, f1_hz: float, seconds: float, rate_hz: float
+          ) -> np.ndarray:
+    """A sine of ``amplitude_v`` whose frequency rises from ``f0_hz`` to ``f1_hz`` over
+    ``seconds``, logarithmically (the same time in each octave)."""
+    from scipy.signal import chirp
+
+    t = np.arange(int(round(seconds * rate_hz))) / rate_hz
+    return amplitude_v * chirp(t, f0_hz, seconds, f1_hz, method="logarithmic", phi=-90.0)
