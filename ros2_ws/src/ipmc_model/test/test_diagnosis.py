@@ -717,11 +717,15 @@ def test_a_drift_is_judged_on_its_probe_at_the_two_ends_of_an_experiment():
 
     first = plant_record({}, 60.0, 1)
     rec0 = DiagnosisRecord(first.t_s, first.u_v, first.y_mm, DiagnosisConfig())
-    x = assemble([CANDIDATES["drift"].probe(rec0, core_model(rec0), None)], rec0)
+    probe = CANDIDATES["drift"].probe(rec0, core_model(rec0), None)
+    x = assemble([probe], rec0)
     fading = {"drift": {"gain_loss_per_min": 0.05, "offset_mm_per_min": 0.0}}
     found = {}
     for name, fx in (("fading", fading), ("steady", {})):
         run = IpmcPlant(effects=fx, seed=2, dt_s=1 / RATE).run(x.u_v)
+        rec = DiagnosisRecord(run.t_s, x.u_v, run.y_mm, DiagnosisConfig(), parts=x.parts)
+        rows = np.flatnonzero(rec.judged_for("drift"))   # the last copy, none of the first
+        assert rows.size == probe.u_v.size and rows[0] == x.u_v.size - probe.u_v.size
         d = diagnose_records([(name, run.t_s, x.u_v, run.y_mm, x.parts)],
                              candidates=["drift"])
         found[name] = d.effects_found

@@ -264,9 +264,9 @@ CROSSING_PERIOD_S, CROSSING_CYCLES = 20.0, 2
 #: Levels of a drift's probe, as shares of the probe level, each held ``hold_min_s`` (the
 #: charging and the back-relaxation settled): the held levels show the gain, 0 V the offset.
 DRIFT_LEVELS = (1.0, -1.0, 0.5, -0.5, 0.0)
-#: A rate dependence's sweep runs an octave either side of the charging corner, with this
-#: many cycles in its lowest octave (the sweep spends the same time in each).
-SWEEP_LOW_CYCLES = 2
+#: A rate dependence's sweep runs an octave either side of the charging corner; each octave
+#: lasts this many periods of its lowest frequency (logarithmic: the same time in each).
+SWEEP_OCTAVE_PERIODS = 2
 
 
 @register
@@ -854,10 +854,10 @@ class RateDependence(Candidate):
         if unresolved_charging(rec, model):
             return None   # a faster sampling rate decides it, not an input
         f_c = 1.0 / (2.0 * math.pi * model.charge_tau_s_)
-        f0, f1 = f_c / 2.0, min(2.0 * f_c, 0.125 / rec.dt_s)
+        f0, f1 = f_c / 2.0, min(2.0 * f_c, 0.125 / rec.dt_s)   # eight samples a period
         if not f1 > f0:
             return None
-        seconds = SWEEP_LOW_CYCLES / f0 * math.log2(f1 / f0)
+        seconds = SWEEP_OCTAVE_PERIODS / f0 * math.log2(f1 / f0)
         a = probe_level_v(rec)
         return Probe(self.name, sweep(a, f0, f1, seconds, 1.0 / rec.dt_s),
                      f"a sine of +-{a:.2f} V swept from {f0:.2g} to {f1:.2g} Hz in "
