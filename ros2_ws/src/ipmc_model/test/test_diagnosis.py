@@ -66,21 +66,40 @@ def test_loss_differential_test_is_not_significant_on_autocorrelated_noise_too_o
 
 def test_a_held_out_offset_counts_as_one_draw_per_record_not_as_many():
     """A block that only moves the level of each record's held-out error (an offset the
-    model's slow misfit leaves there) is not significant however many rows carry it; one that
-    follows the error's course but moves its level away is significant and not material."""
+    model's slow misfit leaves there) is neither significant nor material however many rows
+    carry it; one that follows the error's course but moves its level away is significant
+    and not material."""
     rng = np.random.default_rng(3)
     slow = np.convolve(rng.normal(size=4000), np.ones(50) / 50, mode="same")
     records = np.repeat([0, 1], 2000)
     offset = np.where(records == 0, 0.05, -0.03)
     noise = 0.005 * rng.normal(size=4000)
     level = loss_differential_test(slow + offset, slow + noise, 1e-4, records)
-    assert level.mean_gain_mm2 > 1e-3 and level.material
+    assert level.mean_gain_mm2 > 1e-3 and not level.material
     assert level.p_value > 0.05
     # taken as one record, the step between the two offsets is a course the block explains
     assert loss_differential_test(slow + offset, slow + noise, 1e-4).p_value < 0.01
     course = loss_differential_test(slow, 0.3 * slow + 0.3, 1e-4, records)
     assert course.p_value < 1e-3 and course.centred_gain_mm2 > 0
     assert course.mean_gain_mm2 < 0 and not course.material
+
+
+def test_a_tested_gain_below_the_margin_is_not_material_beside_a_large_offset_gain():
+    """Materiality is judged on what the test found significant: a block that removes each
+    record's held-out offset and a sliver of the error's course is significant on that sliver
+    (many rows carry it), and its gain as the errors are is far above the margin, but its
+    gain about the held-out means is below it: not material. The same sliver's gain above
+    the margin is."""
+    rng = np.random.default_rng(4)
+    slow = np.convolve(rng.normal(size=8000), np.ones(40) / 40, mode="same")
+    records = np.repeat([0, 1], 4000)
+    offset = np.where(records == 0, 0.2, -0.1)
+    margin = 0.1 * float(np.mean(slow ** 2))
+    sliver = loss_differential_test(slow + offset, 0.97 * slow, margin, records)
+    assert sliver.p_value < 0.01 and sliver.mean_gain_mm2 > 5 * margin
+    assert 0 < sliver.centred_gain_mm2 < margin and not sliver.material
+    course = loss_differential_test(slow + offset, 0.5 * slow, margin, records)
+    assert course.centred_gain_mm2 > margin and course.material
 
 
 def test_the_power_of_the_held_out_test_follows_its_standard_error():

@@ -10,11 +10,13 @@ fit rows) lowers the held-out free-run squared error significantly and materiall
   over a HAC (Bartlett, Newey-West) standard error, with the Harvey-Leybourne-Newbold
   small-sample factor, one-sided against Student's t; the bandwidth covers the
   differential's own autocorrelation (a free-run error is slow, so its samples are far from
-  independent), and the held-out offset, one draw per record, is left to the margin below;
+  independent); the held-out offset, one draw per record, cannot be tested;
 * the round's p-values are adjusted by Holm's step-down, holding the family-wise error of
   the candidates the round may accept (the testable ones) at ``family_alpha``;
-* the mean gain of the errors as they are must be at least ``material_noise_share`` times
-  the noise floor squared.
+* the mean gain must be at least ``material_noise_share`` times the noise floor squared,
+  both that of the errors about their means (what the test found significant: a block
+  whose tested gain is below the margin is not material however large its untested offset
+  gain) and that of the errors as they are (a block must not move the level away).
 
 A candidate the rule does not accept, whose block the fit rows support and whose held-out
 gain has the right sign, is undecided rather than rejected when the held-out rows are too
@@ -74,8 +76,9 @@ def loss_differential_test(e_current, e_candidate, margin_mm2: float, groups=Non
     sample): an error constant over a record's held-out part (the free run's offset, set by
     where the model's slow misfit stands when that part begins) is one draw however many
     rows carry it, which a HAC variance over at most a quarter of the rows would count as
-    many. The mean gain, what materiality is judged on, is that of the errors as they are:
-    a block that explains the error's course but moves its level away is no better."""
+    many. Materiality (:attr:`LossTest.material`) is judged on both gains, the tested one
+    about the means and that of the errors as they are: a block that explains the error's
+    course but moves its level away is no better."""
     e_cur, e_new = np.asarray(e_current, float), np.asarray(e_candidate, float)
     gain = float(np.mean(e_cur ** 2 - e_new ** 2))
     d = about_means(e_cur, groups) ** 2 - about_means(e_new, groups) ** 2

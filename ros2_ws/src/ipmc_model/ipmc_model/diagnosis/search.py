@@ -230,7 +230,9 @@ def _verdict(name, ev: Evidence, best, passing, alpha, untestable) -> tuple[Outc
                                   f"({sc.effective_samples:.0f} effective samples)")
     if ev.p_holm > alpha:
         return Outcome.REJECTED, f"{text}; not significant at {alpha:g} after Holm"
-    return Outcome.REJECTED, f"{text}; significant but below the materiality margin"
+    which = ("about the held-out mean" if t.centred_gain_mm2 < t.margin_mm2
+             else "of the errors as they are")
+    return Outcome.REJECTED, f"{text}; significant, but its gain {which} is below the margin"
 
 
 def _with_params(rnd: Round, params: dict) -> Round:
