@@ -102,6 +102,24 @@ def test_a_tested_gain_below_the_margin_is_not_material_beside_a_large_offset_ga
     assert course.centred_gain_mm2 > margin and course.material
 
 
+def test_a_rejection_for_materiality_names_the_gain_that_fell_short():
+    from ipmc_model.diagnosis.results import Evidence, FitScreen, LossTest, Outcome
+    from ipmc_model.diagnosis.search import _verdict
+
+    def verdict(gain, centred):
+        test = LossTest(gain, 4.0, 1e-4, 10, 1e-4, 1e-5, centred)
+        ev = Evidence(0.02, 0.01, test, {}, p_holm=1e-4,
+                      screen=FitScreen(50.0, 3.84, 300.0, 1, 2e-4))
+        return _verdict("drift", ev, None, [], 0.05, {})
+
+    outcome, reason = verdict(5e-4, 5e-5)   # a level gain beside a tiny tested one
+    assert outcome is Outcome.REJECTED
+    assert reason.endswith("its gain about the held-out mean is below the margin")
+    assert verdict(5e-5, 5e-4)[1].endswith("of the errors as they are is below the margin")
+    assert verdict(5e-5, 5e-5)[1].endswith(
+        "about the held-out mean and of the errors as they are are below the margin")
+
+
 def test_the_power_of_the_held_out_test_follows_its_standard_error():
     from ipmc_model.diagnosis.decision import power
 
@@ -129,8 +147,8 @@ def test_config_refuses_thresholds_out_of_range():
 
 
 def test_a_clean_record_has_nothing_and_a_dead_zone_is_found_with_its_width():
-    # 240 s: the benchmark's records (on 150 s of this seed a 6.5 mV "dead zone" passes the
-    # materiality margin by a hair: docs/diagnose.md, what fails)
+    # 240 s: the benchmark's records (on 150 s of this seed a 6.5 mV "dead zone" passed the
+    # materiality margin by a hair)
     clean = diagnose(plant_record({}, 240.0, 0))
     assert clean.effects_found == []
     dz = diagnose(plant_record({"dead_zone": {"width_v": 0.4}}, 240.0, 0))

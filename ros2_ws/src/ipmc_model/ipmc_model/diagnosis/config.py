@@ -13,8 +13,9 @@ class DiagnosisConfig:
     fit_share: float = 0.7
     #: Family-wise error of one round's tests, held by Holm's step-down over its candidates.
     family_alpha: float = 0.05
-    #: A block is material when it cuts the held-out mean squared error by at least this share
-    #: of the sensor's noise variance: a smaller cut is below what the record can show.
+    #: A block is material when it cuts the held-out mean squared error, both about each
+    #: record's held-out mean and as it is, by at least this share of the sensor's noise
+    #: variance: a smaller cut is below what the record can show.
     material_noise_share: float = 0.25
     #: Relaxations slower than this are creep; faster ones are the actuator's charging and
     #: back-relaxation (an IPMC in water settles within a few seconds), in the core model.

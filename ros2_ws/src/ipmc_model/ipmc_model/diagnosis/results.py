@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 from enum import StrEnum
 from typing import TYPE_CHECKING
@@ -40,8 +41,10 @@ class LossTest:
     @property
     def material(self) -> bool:
         """Material in what the statistic tests (the errors' course about their held-out
-        means) and in the errors as they are (a block must not move their level away)."""
-        return min(self.mean_gain_mm2, self.centred_gain_mm2) >= self.margin_mm2
+        means) and in the errors as they are (a block must not move their level away); a
+        test made without the centred gain (NaN) is judged on the errors as they are."""
+        gains = [g for g in (self.mean_gain_mm2, self.centred_gain_mm2) if not math.isnan(g)]
+        return min(gains) >= self.margin_mm2
 
 
 @dataclass(frozen=True)

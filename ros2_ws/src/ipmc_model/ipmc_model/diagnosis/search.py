@@ -230,9 +230,10 @@ def _verdict(name, ev: Evidence, best, passing, alpha, untestable) -> tuple[Outc
                                   f"({sc.effective_samples:.0f} effective samples)")
     if ev.p_holm > alpha:
         return Outcome.REJECTED, f"{text}; not significant at {alpha:g} after Holm"
-    which = ("about the held-out mean" if t.centred_gain_mm2 < t.margin_mm2
-             else "of the errors as they are")
-    return Outcome.REJECTED, f"{text}; significant, but its gain {which} is below the margin"
+    short = [w for w, g in (("about the held-out mean", t.centred_gain_mm2),
+                            ("of the errors as they are", t.mean_gain_mm2)) if g < t.margin_mm2]
+    return Outcome.REJECTED, (f"{text}; significant, but its gain {' and '.join(short)} "
+                              f"{'is' if len(short) == 1 else 'are'} below the margin")
 
 
 def _with_params(rnd: Round, params: dict) -> Round:
