@@ -114,10 +114,11 @@ def test_a_rejection_for_materiality_names_the_gain_that_fell_short():
 
     outcome, reason = verdict(5e-4, 5e-5)   # a level gain beside a tiny tested one
     assert outcome is Outcome.REJECTED
-    assert reason.endswith("its gain about the held-out mean is below the margin")
-    assert verdict(5e-5, 5e-4)[1].endswith("of the errors as they are is below the margin")
+    assert reason.endswith("below the margin: its gain about the held-out mean")
+    assert verdict(5e-5, 5e-4)[1].endswith("below the margin: its gain of the errors as they are")
     assert verdict(5e-5, 5e-5)[1].endswith(
-        "about the held-out mean and of the errors as they are are below the margin")
+        "below the margin: its gain about the held-out mean and its gain of the errors as they "
+        "are")
 
 
 def test_the_power_of_the_held_out_test_follows_its_standard_error():

@@ -232,8 +232,8 @@ def _verdict(name, ev: Evidence, best, passing, alpha, untestable) -> tuple[Outc
         return Outcome.REJECTED, f"{text}; not significant at {alpha:g} after Holm"
     short = [w for w, g in (("about the held-out mean", t.centred_gain_mm2),
                             ("of the errors as they are", t.mean_gain_mm2)) if g < t.margin_mm2]
-    return Outcome.REJECTED, (f"{text}; significant, but its gain {' and '.join(short)} "
-                              f"{'is' if len(short) == 1 else 'are'} below the margin")
+    gains = " and its gain ".join(short)
+    return Outcome.REJECTED, f"{text}; significant, but below the margin: its gain {gains}"
 
 
 def _with_params(rnd: Round, params: dict) -> Round:
