@@ -148,8 +148,7 @@ def test_config_refuses_thresholds_out_of_range():
 
 
 def test_a_clean_record_has_nothing_and_a_dead_zone_is_found_with_its_width():
-    # 240 s: the benchmark's records (on 150 s of this seed a 6.5 mV "dead zone" passed the
-    # materiality margin by a hair)
+    # 240 s: the length of the benchmark's records
     clean = diagnose(plant_record({}, 240.0, 0))
     assert clean.effects_found == []
     dz = diagnose(plant_record({"dead_zone": {"width_v": 0.4}}, 240.0, 0))

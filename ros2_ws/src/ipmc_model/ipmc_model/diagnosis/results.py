@@ -39,12 +39,18 @@ class LossTest:
     centred_gain_mm2: float = float("nan")
 
     @property
+    def short_of_margin(self) -> tuple[str, ...]:
+        """The gains below the margin: the one the statistic tests (the errors' course about
+        their held-out means; not judged when the test was made without it, NaN) and the one
+        of the errors as they are (a block must not move their level away)."""
+        gains = (("about the held-out mean", self.centred_gain_mm2),
+                 ("of the errors as they are", self.mean_gain_mm2))
+        return tuple(w for w, g in gains if not math.isnan(g) and g < self.margin_mm2)
+
+    @property
     def material(self) -> bool:
-        """Material in what the statistic tests (the errors' course about their held-out
-        means) and in the errors as they are (a block must not move their level away); a
-        test made without the centred gain (NaN) is judged on the errors as they are."""
-        gains = [g for g in (self.mean_gain_mm2, self.centred_gain_mm2) if not math.isnan(g)]
-        return min(gains) >= self.margin_mm2
+        """Both gains reach the margin (:attr:`short_of_margin` is empty)."""
+        return not self.short_of_margin
 
 
 @dataclass(frozen=True)

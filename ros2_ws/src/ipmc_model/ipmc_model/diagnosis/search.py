@@ -230,9 +230,7 @@ def _verdict(name, ev: Evidence, best, passing, alpha, untestable) -> tuple[Outc
                                   f"({sc.effective_samples:.0f} effective samples)")
     if ev.p_holm > alpha:
         return Outcome.REJECTED, f"{text}; not significant at {alpha:g} after Holm"
-    short = [w for w, g in (("about the held-out mean", t.centred_gain_mm2),
-                            ("of the errors as they are", t.mean_gain_mm2)) if g < t.margin_mm2]
-    gains = " and its gain ".join(short)
+    gains = " and its gain ".join(t.short_of_margin)
     return Outcome.REJECTED, f"{text}; significant, but below the margin: its gain {gains}"
 
 
