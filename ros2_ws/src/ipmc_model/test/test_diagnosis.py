@@ -885,3 +885,50 @@ def test_an_accepted_creep_whose_time_constant_is_left_open_gets_deciding_holds(
 
     assert "not pinned down" in probe.reason
     assert probe.duration_s >= len(HOLD_LEVELS) * HOLD_TAUS * 28.0 - 1e-6
+
+
+def test_a_drift_accepted_on_a_moving_input_gets_its_probe_to_confirm_it():
+    """On an input that never holds still, a misfit of the path memory trends as a drift
+    would: an accepted drift there asks for its probe (the same levels held at the two ends);
+    on a record with holds in both parts it does not."""
+    from ipmc_model.diagnosis import design_experiment
+    from ipmc_model.diagnosis.results import CandidateResult, Diagnosis, Evidence, LossTest, Round
+
+    cfg = DiagnosisConfig()
+
+    def proposal(holds: bool):
+        data = plant_record({}, 120.0, 1, holds=holds)
+        rec = DiagnosisRecord(data.t_s, data.u_v, data.y_mm, cfg)
+        model = core_model(rec)
+        ev = Evidence(0.05, 0.03, LossTest(1e-3, 3.0, 0.001, 10, 1e-5),
+                      {"gain_loss_per_min": 0.01, "offset_mm_per_min": 0.02})
+        res = CandidateResult("drift", Outcome.ACCEPTED, "accepted", 1, ev)
+        d = Diagnosis(rec.t_s, rec.u_v, rec.y_mm, rec.held_rows, rec.segments, cfg, False,
+                      model, model, rounds=[Round(1, 0.05, (res,), "drift")])
+        return design_experiment(d, rec)
+
+    assert proposal(holds=True) is None
+    x = proposal(holds=False)
+    assert x.decides == ["drift"]
+    ends = [p for p in x.parts if p.effect == "drift"]
+    assert len(ends) == 2 and ends[0].start_s == 0.0
+    assert ends[-1].start_s + ends[-1].duration_s == pytest.approx(x.duration_s)
+    assert "accepted on a moving input" in ends[0].reason
+
+
+def test_a_creep_whose_time_constant_is_bounded_on_neither_side_is_outside_its_range():
+    """A relaxation is its time constant: a creep whose profile stays within the 95 % bound
+    at every time constant the record can show took up a slow misfit, and is rejected; one
+    open end only asks for longer holds, and a closed interval is a creep."""
+    from ipmc_model.diagnosis.candidates import creep_outside
+
+    data = plant_record({}, 60.0, 1, holds=True)
+    rec = DiagnosisRecord(data.t_s, data.u_v, data.y_mm, DiagnosisConfig())
+
+    def outside(tau_s, ci, open_ends):
+        return creep_outside({"tau_s": tau_s, "tau_ci_s": ci, "tau_ci_open": open_ends}, rec)
+
+    assert "bounded on neither side" in outside(360.0, [3.3, 362.0], [True, True])
+    assert outside(40.0, [12.0, 80.0], [False, True]) is None
+    assert outside(20.0, [15.0, 35.0], [False, False]) is None
+    assert "faster than a creep" in outside(4.0, [3.3, 6.0], [True, False])

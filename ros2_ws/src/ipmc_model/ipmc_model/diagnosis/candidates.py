@@ -85,10 +85,10 @@ class Candidate:
         given model is what it needs)."""
         return None
 
-    def poorly_determined(self, result) -> str | None:
-        """Why an accepted effect's parameters are not pinned down by the record (a 95 %
-        interval the record leaves open), so that the probe is worth recording; None if
-        they are."""
+    def poorly_determined(self, result, rec: DiagnosisRecord) -> str | None:
+        """Why an accepted effect is not pinned down by the record (a 95 % interval the
+        record leaves open, or an excitation that another effect could explain as well), so
+        that the probe is worth recording; None if it is."""
         return None
 
     def refit(self, model: GeneralizedPI, rec: DiagnosisRecord) -> Fitted | str:
@@ -247,6 +247,18 @@ def creep_taus(model: GeneralizedPI, rec: DiagnosisRecord, given: bool = False
                  and t not in have)
 
 
+def too_few_holds(rec: DiagnosisRecord) -> str | None:
+    """How few input holds the record has, when it has fewer than ``min_holds`` in the fit
+    part or the held-out part; None when both have enough. While the input holds, the memory
+    of the path stands still, so what still moves is a relaxation or a drift; on a moving
+    input, whatever the model misfits of that memory moves as well."""
+    c, ex = rec.config, rec.excitation
+    if ex.holds_fit >= c.min_holds and ex.holds_held >= c.min_holds:
+        return None
+    return (f"{ex.holds_fit} input holds of {c.hold_min_s:g} s or more in the fit part, "
+            f"{ex.holds_held} in the held-out part")
+
+
 #: Holds proposed for creep last this many of its time constants (86 % settled).
 HOLD_TAUS = 2.0
 #: Levels of the proposed holds, as shares of the probe level: both signs, two sizes, each
@@ -282,11 +294,11 @@ class Creep(Candidate):
             return (f"the fit part spans {ex.fit_span_s:.0f} s: a relaxation slower than "
                     f"{c.creep_min_tau_s:g} s must be seen settling over "
                     f"{MIN_SPANS_PER_TAU:g} of its time constants; record longer")
-        if ex.holds_fit < c.min_holds or ex.holds_held < c.min_holds:
-            return (f"{ex.holds_fit} input holds of {c.hold_min_s:g} s or more in the fit "
-                    f"part, {ex.holds_held} in the held-out part: on a moving input a slow "
-                    f"relaxation cannot be told from the memory of the path; record holds of "
-                    f"at least {c.hold_min_s:g} s at several levels in both parts")
+        few = too_few_holds(rec)
+        if few:
+            return (f"{few}: on a moving input a slow relaxation cannot be told from the "
+                    f"memory of the path; record holds of at least {c.hold_min_s:g} s at "
+                    f"several levels in both parts")
         return None
 
     def probe(self, rec, model, result):
@@ -302,7 +314,7 @@ class Creep(Candidate):
                      f"relaxation settles while the input holds still, the path memory does "
                      f"not move")
 
-    def poorly_determined(self, result):
+    def poorly_determined(self, result, rec):
         p = result.evidence.params if result.evidence is not None else {}
         low, high = p.get("tau_ci_open", (False, False))
         if not (low or high):
@@ -359,12 +371,7 @@ class Creep(Candidate):
             params, single = creep_profile(core, rec)
             params = {**params, "taus_s": [float(single.output_taus_s[-1])],
                       "gains_mm_per_v": [float(single.output_coef_[-1])]}
-        low = rec.config.creep_min_tau_s
-        outside = (None if params["tau_s"] >= low else
-                   f"estimated on every row its relaxation is faster than a creep (tau "
-                   f"{params['tau_s']:.3g} s < {low:g} s): the block took up a fast misfit of "
-                   f"the model, not a creep")
-        return Refined(params, single, outside)
+        return Refined(params, single, creep_outside(params, rec))
 
 
 def warm_refit(model: GeneralizedPI, rec: DiagnosisRecord, **attrs) -> GeneralizedPI:
@@ -544,6 +551,24 @@ def judged_on_profile(prof: Profile, after: GeneralizedPI, rec: DiagnosisRecord,
                     is_open: list(open_ends)}, kept, None if inside else why(added))
 
 
+def creep_outside(params: dict, rec: DiagnosisRecord) -> str | None:
+    """Why a creep estimated on every row is no creep, or None: a relaxation faster than a
+    creep, or a time constant the record bounds on neither side (a relaxation is defined by
+    its time constant; a block that fits as well at every one the record can show took up a
+    slow misfit, which any slow block fits)."""
+    low = rec.config.creep_min_tau_s
+    lo, hi = params["tau_ci_s"]
+    if params["tau_s"] < low:
+        return (f"estimated on every row its relaxation is faster than a creep (tau "
+                f"{params['tau_s']:.3g} s < {low:g} s): the block took up a fast misfit of "
+                f"the model, not a creep")
+    if all(params.get("tau_ci_open", (False, False))):
+        return (f"estimated on every row its time constant is bounded on neither side (95 % "
+                f"interval {lo:.3g}-{hi:.3g} s, every one the record can show): the block "
+                f"took up a slow misfit of the model, not a relaxation")
+    return None
+
+
 #: The creep profile's finest step in ln tau (1 %: far inside any interval a record gives).
 CREEP_LOG_TAU_RESOLUTION = 0.01
 
@@ -688,6 +713,16 @@ class Drift(Candidate):
                      f"a drift bends the same levels less or more at the end (its gain) and "
                      f"moves where 0 V rests (its offset); the actuator's memory of the path "
                      f"does not", ends=True)
+
+    def poorly_determined(self, result, rec):
+        # a moving input that never repeats: the model's misfit of the path memory wanders
+        # slowly too, and where it trends, the drift's rates take it up as well
+        few = too_few_holds(rec)
+        if few is None:
+            return None
+        return (f"accepted on a moving input ({few}): a trend in the error is also what a "
+                f"misfit of the memory of a path that never repeats leaves; the same levels "
+                f"held at the start and the end tell the two apart")
 
     def refit(self, model, rec):
         # the two rates fitted jointly with the rest

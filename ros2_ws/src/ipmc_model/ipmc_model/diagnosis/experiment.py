@@ -2,7 +2,8 @@
 
 When the record cannot test a candidate (creep without input holds, a delay without steps, a
 dead zone without slow crossings of 0 V), or an accepted effect's parameters are left open
-by it (a creep whose time constant's interval runs to the longest the record can show), the
+by it (a creep whose time constant's interval runs to the longest the record can show; a
+drift accepted on a moving input, where a misfit of the path memory trends as well), the
 candidate's class proposes a probe: the short input that shows its effect. The experiment
 plays the probes after an identification input that covers the record's range, and then
 plays them again as the held-out part, so that the diagnosis of the new record judges each
@@ -90,14 +91,14 @@ def probe_level_v(rec: DiagnosisRecord) -> float:
 
 def design_experiment(d: Diagnosis, rec: DiagnosisRecord) -> Experiment | None:
     """The experiment that decides the diagnosis's not-testable candidates and pins down the
-    accepted ones whose parameters the record left open; None if none of them has a probe
+    accepted ones the record left open; None if none of them has a probe
     (the ones that need a given model instead of a record)."""
     from .candidates import CANDIDATES
 
     probes = []
     for res in d.candidates:
         cand = CANDIDATES.get(res.name)
-        why = (cand.poorly_determined(res) if cand is not None and res.accepted else None)
+        why = (cand.poorly_determined(res, rec) if cand is not None and res.accepted else None)
         if cand is None or not (res.outcome is Outcome.NOT_TESTABLE or why):
             continue
         probe = cand.probe(rec, d.model_before, res)
