@@ -4,6 +4,7 @@ time on 30 000 samples. Prints figures; not part of the pass/fail suite.
     .venv/bin/python benchmarks/bench_diagnose.py acceptance [--jobs 2] [--seed-offset N]
     .venv/bin/python benchmarks/bench_diagnose.py design [--jobs 2]
     .venv/bin/python benchmarks/bench_diagnose.py timing
+    .venv/bin/python benchmarks/bench_diagnose.py second [--jobs 2] [--seed-offset N]
 
 Two fixed sets of records, each a list of (plant, record kind, injected effects, given model,
 seed): ``design`` (seeds 0-1, the effect sizes the rule and the candidates were developed on)
@@ -13,6 +14,13 @@ Duhem hysteresis, a 0.8 s relaxation, polynomial output; its transport delay and
 relaxation are here injected effects, off in the clean twin), records with and without input
 holds (240 s at 50 Hz), a given model (a clean day's core model) with what changed on a later
 day, and two effects at once.
+
+``second``: the acceptance set's records without input holds and without a given model, each
+diagnosed, then the experiment that diagnosis proposes played on the same plant (another
+noise seed) and diagnosed with the first record's findings known, as the second round of
+``ipmc investigate``: an effect's verdict is its latest on a record that could test it, and
+the record is right when the accepted ones are exactly the injected ones (the first round
+also as scored below).
 
 Scoring: a record is right when the effects found are exactly the injected ones; a creep on
 a record without holds is right when it is reported not testable for lack of holds and
@@ -93,13 +101,18 @@ def duhem_run(u: np.ndarray, effects: dict, seed: int) -> np.ndarray:
 
 def record(plant: str, effects: dict, seed: int, holds: bool):
     from ipmc_driver.dataio import Record
-    from ipmc_driver.plant import IpmcPlant
 
     u = _input(SECONDS, seed, holds)
+    return Record(np.arange(u.size) / RATE, u, plant_run(plant, effects, seed, u))
+
+
+def plant_run(plant: str, effects: dict, seed: int, u: np.ndarray) -> np.ndarray:
+    """The measured tip (mm) of ``plant`` with ``effects`` under the voltages ``u``."""
+    from ipmc_driver.plant import IpmcPlant
+
     if plant == "ipmc":
-        run = IpmcPlant(effects=effects, seed=seed, dt_s=1.0 / RATE).run(u)
-        return Record(run.t_s, u, run.y_mm)
-    return Record(np.arange(u.size) / RATE, u, duhem_run(u, effects, seed))
+        return IpmcPlant(effects=effects, seed=seed, dt_s=1.0 / RATE).run(u).y_mm
+    return duhem_run(u, effects, seed)
 
 
 def _single(plant, seeds, sizes, kinds=(False, True)):
@@ -228,6 +241,70 @@ def _totals(results, ratios) -> None:
           f"{len(named)}")
 
 
+@dataclass(frozen=True)
+class SecondOutcome:
+    """A record, the experiment its diagnosis proposed and what the two decided."""
+
+    case: Case
+    first: tuple
+    first_right: bool
+    decides: tuple          # what the experiment was proposed to decide; () if none
+    experiment_s: float
+    final: tuple            # accepted on the latest record that could test each effect
+    right: bool
+
+
+def latest_accepted(diagnoses) -> tuple:
+    """Effects whose latest verdict on a record that could test them is 'accepted'."""
+    latest = {}
+    for d in diagnoses:
+        for res in d.candidates:
+            if res.outcome.value != "not testable":
+                latest[res.name] = res.outcome.value
+    return tuple(sorted(n for n, o in latest.items() if o == "accepted"))
+
+
+def run_second(case: Case) -> SecondOutcome:
+    from ipmc_model.diagnosis import diagnose
+    from ipmc_model.diagnosis.search import diagnose_records
+
+    with threadpool_limits(1):
+        rec = record(case.plant, dict(case.effects), case.seed, case.holds)
+        d1 = diagnose(rec.t_s, rec.u_v, rec.y_mm, jobs=1)
+        first = (tuple(d1.effects_found), _is_right(case, d1))
+        x = d1.next_experiment
+        if x is None:
+            return SecondOutcome(case, *first, (), 0.0, tuple(sorted(d1.effects_found)),
+                                 first[1])
+        y2 = plant_run(case.plant, dict(case.effects), case.seed + 1000, x.u_v)
+        d2 = diagnose_records([("experiment", np.arange(x.u_v.size) / RATE, x.u_v, y2,
+                                x.parts)], known=tuple(d1.effects_found), jobs=1)
+    final = latest_accepted([d1, d2])
+    return SecondOutcome(case, *first, tuple(x.decides), x.duration_s, final,
+                         list(final) == case.names)
+
+
+def second(cases, jobs: int) -> None:
+    """The moving records of ``cases`` without a given model, over two records (module doc)."""
+    cases = [c for c in cases if not c.holds and c.given is None]
+    print(f"of which without holds and without a given model: {len(cases)} records")
+    with ProcessPoolExecutor(jobs) as pool:
+        results = list(pool.map(run_second, cases))
+    print("| record | found on the record | right | experiment: decides, s | found after it "
+          "| right |")
+    print("|---|---|---|---|---|---|")
+    for r in results:
+        print(f"| {r.case.label()} | {', '.join(r.first) or '-'} | "
+              f"{'yes' if r.first_right else 'NO'} | {', '.join(r.decides) or '-'}, "
+              f"{r.experiment_s:.0f} | {', '.join(r.final) or '-'} | "
+              f"{'yes' if r.right else 'NO'} |", flush=True)
+    for label, rows in (("one effect", [r for r in results if len(r.case.effects) == 1]),
+                        ("clean", [r for r in results if not r.case.effects]),
+                        ("two effects", [r for r in results if len(r.case.effects) == 2])):
+        print(f"{label}: right on the record {sum(r.first_right for r in rows)} / {len(rows)}, "
+              f"after its experiment {sum(r.right for r in rows)} / {len(rows)}")
+
+
 def timing() -> None:
     """30 000 samples (600 s at 50 Hz, creep on, input holds), no given model, on the cores
     this process may use (a round's candidates and a profile's refits run side by side):
@@ -249,7 +326,7 @@ def timing() -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("section", choices=("acceptance", "design", "timing"))
+    p.add_argument("section", choices=("acceptance", "design", "timing", "second"))
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--seed-offset", type=int, default=0,
                    help="shift every seed of the set: fresh records of the same kinds and sizes")
@@ -257,11 +334,11 @@ def main() -> None:
     if a.section == "timing":
         timing()
     else:
-        cases = ACCEPTANCE if a.section == "acceptance" else DESIGN
+        cases = DESIGN if a.section == "design" else ACCEPTANCE
         cases = [Case(c.plant, c.holds, c.effects, c.given, c.seed + a.seed_offset)
                  for c in cases]
         print(f"{a.section} set: {len(cases)} records")
-        table(cases, a.jobs)
+        (second if a.section == "second" else table)(cases, a.jobs)
 
 
 if __name__ == "__main__":
