@@ -5,11 +5,13 @@
 
 Round 1 plays a first excitation, records it and diagnoses the record (``ipmc diagnose``'s
 procedure). When the diagnosis leaves an effect undecided for lack of the input that shows it
-(creep without input holds, a delay without steps, a dead zone without slow crossings of 0 V),
-it proposes the experiment that decides it; the next round plays that experiment, records it
-and diagnoses it; and so on until nothing is undecided, an experiment left its effects as
-undecided as before, the next experiment would decide only effects that an earlier record able
-to show them decided, or it would overrun the budget of recorded minutes.
+(creep without input holds, a delay without steps, a dead zone without slow crossings of 0 V)
+or accepts one the record cannot pin down (a creep's time constant left open, a drift on a
+moving input), it proposes the experiment that decides it; the next round plays that
+experiment, records it and diagnoses it; and so on until nothing is undecided, an experiment
+left its effects as undecided as before, the next experiment would decide only effects that
+an earlier record able to show them decided, or it would overrun the budget of recorded
+minutes.
 
 Each new record is diagnosed on its own, from the diagnosis's core model refitted on its fit
 part with the blocks of the effects earlier rounds accepted (``known``: fitted on this fit
@@ -244,7 +246,8 @@ def experiment_input(experiment, out_dir: Path, after_round: int) -> PlannedInpu
 # -- the loop -------------------------------------------------------------------------------
 def settled(rounds) -> set[str]:
     """Effects a round judged on a record that could show them (accepted or rejected) and
-    did not ask to probe again (an accepted creep whose time constant was left open does)."""
+    did not ask to probe again (an accepted creep whose time constant was left open does, and
+    a drift accepted on a moving input)."""
     out = set()
     for rnd in rounds:
         asked = set(rnd.verdicts.undecided())

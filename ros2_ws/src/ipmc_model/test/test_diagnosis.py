@@ -901,7 +901,7 @@ def test_a_drift_accepted_on_a_moving_input_gets_its_probe_to_confirm_it():
         rec = DiagnosisRecord(data.t_s, data.u_v, data.y_mm, cfg)
         model = core_model(rec)
         ev = Evidence(0.05, 0.03, LossTest(1e-3, 3.0, 0.001, 10, 1e-5),
-                      {"gain_loss_per_min": 0.01, "offset_mm_per_min": 0.02})
+                      {"gain_change_per_min": -0.01, "offset_mm_per_min": 0.02})
         res = CandidateResult("drift", Outcome.ACCEPTED, "accepted", 1, ev)
         d = Diagnosis(rec.t_s, rec.u_v, rec.y_mm, rec.held_rows, rec.segments, cfg, False,
                       model, model, rounds=[Round(1, 0.05, (res,), "drift")])

@@ -155,7 +155,8 @@ class Diagnosis:
     noise_floor_mm: float = float("nan")
     seconds: float = 0.0
     excitation: dict = field(default_factory=dict)
-    #: The experiment that would decide the not-testable candidates (None: nothing to run).
+    #: The experiment that would decide the not-testable candidates and pin down the accepted
+    #: ones the record left open (None: nothing to run).
     next_experiment: Experiment | None = None
     #: Effects an earlier record decided: in ``model_before`` from the start, not judged here.
     known: tuple[str, ...] = ()
