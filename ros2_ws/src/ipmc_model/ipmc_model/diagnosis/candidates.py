@@ -715,8 +715,6 @@ class Drift(Candidate):
                      f"does not", ends=True)
 
     def poorly_determined(self, result, rec):
-        # a moving input that never repeats: the model's misfit of the path memory wanders
-        # slowly too, and where it trends, the drift's rates take it up as well
         few = too_few_holds(rec)
         if few is None:
             return None
