@@ -85,6 +85,12 @@ class Candidate:
         given model is what it needs)."""
         return None
 
+    def judged(self, rec: DiagnosisRecord) -> tuple[np.ndarray, np.ndarray]:
+        """The held-out rows this effect's test is judged on (a mask over every row) and the
+        group each row's error is taken about the mean of: by default its probe's rows where
+        the record has them, else every judged row, grouped by record."""
+        return rec.judged_groups(self.name)
+
     def poorly_determined(self, result, rec: DiagnosisRecord) -> str | None:
         """Why an accepted effect is not pinned down by the record (a 95 % interval the
         record leaves open, or an excitation that another effect could explain as well), so
@@ -300,6 +306,12 @@ class Creep(Candidate):
                     f"memory of the path; record holds of at least {c.hold_min_s:g} s at "
                     f"several levels in both parts")
         return None
+
+    def judged(self, rec):
+        # while the input holds, the path memory stands still: how the error moves in a hold
+        # is a relaxation's (or a drift's), while the level the model puts a hold at is its
+        # path memory's, one draw per hold, which a slow block can shift as well
+        return rec.judged_groups(self.name, in_holds=True)
 
     def probe(self, rec, model, result):
         ev = result.evidence

@@ -165,11 +165,23 @@ class DiagnosisRecord:
         of ``effect``'s probes where the records have them."""
         return (y_model - self.y_mm)[self.judged_for(effect)]
 
-    def judged_segments(self, effect: str | None = None) -> np.ndarray:
-        """Which joined record (its index in ``segments``) each of ``effect``'s judged rows
-        belongs to."""
+    def judged_groups(self, effect: str | None = None, in_holds: bool = False
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """``effect``'s judged rows (a mask over every row) and, for each, the group its
+        error is taken about the mean of (:func:`decision.about_means`): its record. With
+        ``in_holds``, only the judged rows inside the input's holds, each hold a group of its
+        own; every judged row by record where the held-out part has no hold."""
+        rows = self.judged_for(effect)
         starts = np.array([s.start for s in self.segments])
-        return np.searchsorted(starts, np.flatnonzero(self.judged_for(effect)), "right") - 1
+        by_record = np.searchsorted(starts, np.arange(rows.size), "right") - 1
+        if not in_holds:
+            return rows, by_record[rows]
+        hold = np.full(rows.size, -1)
+        for s in self.segments:
+            for a, b in find_holds(self.u_v[s.start:s.stop], self.dt_s, self.config.hold_min_s):
+                hold[s.start + a:s.start + b] = s.start + a   # a label per hold: its start
+        inside = rows & (hold >= 0)
+        return (inside, hold[inside]) if inside.any() else (rows, by_record[rows])
 
     def judged_for(self, effect: str | None = None) -> np.ndarray:
         """The judged rows ``effect``'s test uses: its probes' held-out rows where a record

@@ -86,13 +86,13 @@ def _given(model, rec: DiagnosisRecord) -> GeneralizedPI:
 
 
 def per_record(e_cur: np.ndarray, e_new: np.ndarray, rec: DiagnosisRecord,
-               effect: str | None = None) -> tuple[RecordShare, ...]:
+               rows: np.ndarray) -> tuple[RecordShare, ...]:
     """Each joined record's share of the judged held-out errors ``e_cur`` (current model)
-    and ``e_new`` (with the candidate) over ``effect``'s judged rows; none for a single
+    and ``e_new`` (with the candidate) over the judged ``rows`` (a mask); none for a single
     record (the round's figures are its own)."""
     if len(rec.segments) == 1:
         return ()
-    at = np.flatnonzero(rec.judged_for(effect))
+    at = np.flatnonzero(rows)
     out = []
     for s in rec.segments:
         k = (at >= s.start) & (at < s.stop)
@@ -103,11 +103,15 @@ def per_record(e_cur: np.ndarray, e_new: np.ndarray, rec: DiagnosisRecord,
     return tuple(out)
 
 
-def _judged_on(rec: DiagnosisRecord, effect: str) -> str:
-    """Where ``effect`` was judged, when not on every judged held-out row."""
-    if effect not in rec.probe_rows:
-        return ""
-    return f"its probe's {int(rec.probe_rows[effect].sum())} held-out rows"
+def _judged_on(rec: DiagnosisRecord, effect: str, rows: np.ndarray, groups: np.ndarray
+               ) -> str:
+    """Where ``effect`` was judged (``rows``, taken about the means of ``groups``), when not
+    on every judged held-out row."""
+    whose = "its probe's" if effect in rec.probe_rows else "the"
+    if rows.sum() < rec.judged_for(effect).sum():
+        return (f"{whose} {int(rows.sum())} held-out rows in {np.unique(groups).size} input "
+                f"holds, each error about its hold's mean")
+    return f"{whose} {int(rows.sum())} held-out rows" if effect in rec.probe_rows else ""
 
 
 def _rms(e: np.ndarray) -> float:
@@ -160,14 +164,15 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
                              if why is not None else
                              CandidateResult(name, Outcome.REJECTED, out, number))
             continue
-        e_cur = rec.judged_error(y_cur, name)
-        e_new = rec.judged_error(out.model.simulate(rec.u_v), name)
-        test = loss_differential_test(e_cur, e_new, margin, rec.judged_segments(name))
+        rows, groups = CANDIDATES[name].judged(rec)
+        e_cur = (y_cur - rec.y_mm)[rows]
+        e_new = (out.model.simulate(rec.u_v) - rec.y_mm)[rows]
+        test = loss_differential_test(e_cur, e_new, margin, groups)
         screen = fit_screen(sse_fit, n_eff, CANDIDATES[name], out.model, rec, cfg.family_alpha)
         tested[name] = (out, Evidence(_rms(e_cur), _rms(e_new), test, out.params, out.scan,
                                       screen=screen,
-                                      records=per_record(e_cur, e_new, rec, name),
-                                      judged_on=_judged_on(rec, name)))
+                                      records=per_record(e_cur, e_new, rec, rows),
+                                      judged_on=_judged_on(rec, name, rows, groups)))
     # the family is the candidates the round may accept and the fit rows support; rivals
     # (not testable) are tested beside it
     screened = {n: ev for n, (_, ev) in tested.items() if ev.screen.passed}
