@@ -255,6 +255,35 @@ def test_creep_needs_holds_and_is_found_on_them():
     assert p["taus_s"] == [p["tau_s"]]
 
 
+def test_creep_is_judged_inside_the_input_holds_each_error_about_its_holds_mean():
+    """While the input holds the path memory stands still: creep's test takes the judged
+    rows inside holds, each hold a group, so a block that only shifts the level a hold is
+    put at (as a misfit of the path memory does) gains nothing; the other effects keep every
+    judged row, grouped by record; without holds creep keeps them too (as a rival)."""
+    cfg = DiagnosisConfig()
+    r = plant_record({}, 200.0, 4, holds=True)
+    rec = DiagnosisRecord(r.t_s, r.u_v, r.y_mm, cfg)
+    rows, groups = CANDIDATES["creep"].judged(rec)
+    every, by_record = CANDIDATES["delay"].judged(rec)
+    assert np.array_equal(every, rec.judged) and np.all(by_record == 0)
+    assert 0 < rows.sum() < every.sum() and not np.any(rows & ~every)
+    u = rec.u_v[rows]
+    assert np.unique(groups).size >= cfg.min_holds
+    for g in np.unique(groups):   # each group is one hold: the input stands still in it
+        assert np.ptp(u[groups == g]) <= 0.02 * np.ptp(rec.u_v)
+    # the judged errors of a model that misplaces each hold's level by a constant, about
+    # the holds' means, are the ones of the model that does not: nothing to gain
+    shift = np.zeros(rec.u_v.size)
+    for k, g in enumerate(np.unique(groups)):
+        shift[np.flatnonzero(rows)[groups == g]] = 0.01 * (-1) ** k
+    e = 0.003 * np.random.default_rng(0).normal(size=rows.sum())
+    test = loss_differential_test(e + shift[rows], e, 0.0, groups)
+    assert test.centred_gain_mm2 == pytest.approx(0.0, abs=1e-12)
+    moving = plant_record({}, 200.0, 4)
+    mrec = DiagnosisRecord(moving.t_s, moving.u_v, moving.y_mm, cfg)
+    assert np.array_equal(CANDIDATES["creep"].judged(mrec)[0], mrec.judged)
+
+
 def test_the_model_an_accepted_creep_leaves_generalises_as_the_one_that_passed():
     """The creep's costlier estimate (one relaxation, profiled over tau) must not leave a
     model that predicts the held-out rows worse than the one the rule accepted: the next

@@ -5,8 +5,10 @@ fit rows) lowers the held-out free-run squared error significantly and materiall
 
 * the loss differential ``d_k = e_cur_k^2 - e_new_k^2`` over the held-out samples (those
   within the fit part's voltage range, :meth:`DiagnosisRecord.judged_for`: on a record
-  played from a proposed experiment, the rows of the effect's own probe), each error taken
-  about its mean over its record's held-out rows, is tested by Diebold-Mariano: its mean
+  played from a proposed experiment, the rows of the effect's own probe; the rows the
+  candidate's class names, :meth:`Candidate.judged`: a creep's are those inside the input
+  holds), each error taken about its mean over its record's held-out rows (a creep's over
+  its hold's), is tested by Diebold-Mariano: its mean
   over a HAC (Bartlett, Newey-West) standard error, with the Harvey-Leybourne-Newbold
   small-sample factor, one-sided against Student's t; the bandwidth covers the
   differential's own autocorrelation (a free-run error is slow, so its samples are far from
@@ -19,10 +21,10 @@ fit rows) lowers the held-out free-run squared error significantly and materiall
   gain) and that of the errors as they are (a block must not move the level away).
 
 A candidate the rule does not accept, whose block the fit rows support and whose held-out
-gain has the right sign, is undecided rather than rejected when the held-out rows are too
-few to decide it: when the test would pass with less than ``min_power`` probability at the
-gain the fit rows show (:func:`power`, at Holm's first level). A record with its probe
-decides it.
+gains (the tested one and the whole) have the right sign, is undecided rather than rejected
+when the held-out rows are too few to decide it: when the test would pass with less than
+``min_power`` probability at the gain the fit rows show (:func:`power`, at Holm's first
+level). A record with its probe decides it.
 
 Of the candidates that pass, the round accepts the one with the largest mean gain; the next
 round refits the rest around it. Written by hand: SciPy has no Diebold-Mariano test and the

@@ -201,8 +201,10 @@ def _too_few(res: CandidateResult, cfg: DiagnosisConfig, family: int, rec: Diagn
     at the gain they show is below ``min_power``), if they cannot and a probe can; None if
     the rejection stands."""
     sc, t = res.evidence.screen, res.evidence.test
-    # a gain below the materiality margin is rejected however many rows there were
-    if not (sc.passed and t.mean_gain_mm2 > 0 and sc.mean_gain_mm2 >= t.margin_mm2):
+    # a gain below the materiality margin is rejected however many rows there were, and so
+    # is one of the wrong sign, the tested one (about the held-out means) or the whole
+    right_sign = t.mean_gain_mm2 > 0 and not t.centred_gain_mm2 <= 0
+    if not (sc.passed and right_sign and sc.mean_gain_mm2 >= t.margin_mm2):
         return None
     level = cfg.family_alpha / max(1, family)   # Holm's first step
     pw = power(t, sc.mean_gain_mm2, level)
