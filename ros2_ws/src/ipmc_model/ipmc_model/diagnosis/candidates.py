@@ -35,7 +35,7 @@ from ..hysteresis import (
 )
 from .experiment import Probe, crossings, holds, probe_level_v, sweep
 from .parallel import fan_out
-from .record import DiagnosisRecord
+from .record import DiagnosisRecord, Judged
 
 
 @dataclass(frozen=True)
@@ -85,10 +85,10 @@ class Candidate:
         given model is what it needs)."""
         return None
 
-    def judged(self, rec: DiagnosisRecord) -> tuple[np.ndarray, np.ndarray]:
-        """The held-out rows this effect's test is judged on (a mask over every row) and the
-        group each row's error is taken about the mean of: by default its probe's rows where
-        the record has them, else every judged row, grouped by record."""
+    def judged(self, rec: DiagnosisRecord) -> Judged:
+        """Which of this effect's judged rows (its probe's where the record has one) its
+        test takes, and the group each one's error is taken about the mean of: by default
+        every one, by record."""
         return rec.judged_groups(self.name)
 
     def poorly_determined(self, result, rec: DiagnosisRecord) -> str | None:

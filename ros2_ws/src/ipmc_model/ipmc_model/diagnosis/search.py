@@ -27,7 +27,7 @@ from .config import DiagnosisConfig
 from .decision import holm, loss_differential_test, passes, power
 from .experiment import design_experiment
 from .parallel import fan_out, using
-from .record import DiagnosisRecord
+from .record import DiagnosisRecord, Judged
 from .results import CandidateResult, Diagnosis, Evidence, FitScreen, Outcome, RecordShare, Round
 
 #: Trust-region iterations of the core model's first fit and of its candidates' fresh refits
@@ -86,13 +86,13 @@ def _given(model, rec: DiagnosisRecord) -> GeneralizedPI:
 
 
 def per_record(e_cur: np.ndarray, e_new: np.ndarray, rec: DiagnosisRecord,
-               rows: np.ndarray) -> tuple[RecordShare, ...]:
+               effect: str | None = None) -> tuple[RecordShare, ...]:
     """Each joined record's share of the judged held-out errors ``e_cur`` (current model)
-    and ``e_new`` (with the candidate) over the judged ``rows`` (a mask); none for a single
+    and ``e_new`` (with the candidate) over ``effect``'s judged rows; none for a single
     record (the round's figures are its own)."""
     if len(rec.segments) == 1:
         return ()
-    at = np.flatnonzero(rows)
+    at = np.flatnonzero(rec.judged_for(effect))
     out = []
     for s in rec.segments:
         k = (at >= s.start) & (at < s.stop)
@@ -103,15 +103,16 @@ def per_record(e_cur: np.ndarray, e_new: np.ndarray, rec: DiagnosisRecord,
     return tuple(out)
 
 
-def _judged_on(rec: DiagnosisRecord, effect: str, rows: np.ndarray, groups: np.ndarray
-               ) -> str:
-    """Where ``effect`` was judged (``rows``, taken about the means of ``groups``), when not
-    on every judged held-out row."""
-    whose = "its probe's" if effect in rec.probe_rows else "the"
-    if rows.sum() < rec.judged_for(effect).sum():
-        return (f"{whose} {int(rows.sum())} held-out rows in {np.unique(groups).size} input "
-                f"holds, each error about its hold's mean")
-    return f"{whose} {int(rows.sum())} held-out rows" if effect in rec.probe_rows else ""
+def _judged_on(rec: DiagnosisRecord, effect: str, how: Judged) -> str:
+    """Where ``effect`` was judged (``how``), when not on every judged held-out row by
+    record."""
+    probe = effect in rec.probe_rows
+    whose = "its probe's" if probe else "the"
+    rows = f"{whose} {int(rec.judged_for(effect).sum())} held-out rows"
+    if how.by_hold:
+        return (f"{rows}, tested on the {int(how.tested.sum())} in {np.unique(how.groups).size} "
+                f"input holds, each error about its hold's mean")
+    return rows if probe else ""
 
 
 def _rms(e: np.ndarray) -> float:
@@ -164,15 +165,15 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
                              if why is not None else
                              CandidateResult(name, Outcome.REJECTED, out, number))
             continue
-        rows, groups = CANDIDATES[name].judged(rec)
-        e_cur = (y_cur - rec.y_mm)[rows]
-        e_new = (out.model.simulate(rec.u_v) - rec.y_mm)[rows]
-        test = loss_differential_test(e_cur, e_new, margin, groups)
+        how = CANDIDATES[name].judged(rec)
+        e_cur = rec.judged_error(y_cur, name)
+        e_new = rec.judged_error(out.model.simulate(rec.u_v), name)
+        test = loss_differential_test(e_cur, e_new, margin, how.groups, how.tested)
         screen = fit_screen(sse_fit, n_eff, CANDIDATES[name], out.model, rec, cfg.family_alpha)
         tested[name] = (out, Evidence(_rms(e_cur), _rms(e_new), test, out.params, out.scan,
                                       screen=screen,
-                                      records=per_record(e_cur, e_new, rec, rows),
-                                      judged_on=_judged_on(rec, name, rows, groups)))
+                                      records=per_record(e_cur, e_new, rec, name),
+                                      judged_on=_judged_on(rec, name, how)))
     # the family is the candidates the round may accept and the fit rows support; rivals
     # (not testable) are tested beside it
     screened = {n: ev for n, (_, ev) in tested.items() if ev.screen.passed}
