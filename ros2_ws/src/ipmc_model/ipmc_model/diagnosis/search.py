@@ -110,8 +110,8 @@ def _judged_on(rec: DiagnosisRecord, effect: str, how: Judged) -> str:
     whose = "its probe's" if probe else "the"
     rows = f"{whose} {int(rec.judged_for(effect).sum())} held-out rows"
     if how.by_hold:
-        return (f"{rows}, tested on the {int(how.tested.sum())} in {np.unique(how.groups).size} "
-                f"input holds, each error about its hold's mean")
+        return (f"{rows} (tested on the {int(how.tested.sum())} in "
+                f"{np.unique(how.groups).size} input holds, each error about its hold's mean)")
     return rows if probe else ""
 
 
