@@ -35,7 +35,7 @@ from ..hysteresis import (
 )
 from .experiment import Probe, crossings, holds, probe_level_v, sweep
 from .parallel import fan_out
-from .record import DiagnosisRecord, Judged
+from .record import DiagnosisRecord
 
 
 @dataclass(frozen=True)
@@ -84,12 +84,6 @@ class Candidate:
         its evidence when the candidate was fitted as a rival); None if no record can (a
         given model is what it needs)."""
         return None
-
-    def judged(self, rec: DiagnosisRecord) -> Judged:
-        """Which of this effect's judged rows (its probe's where the record has one) its
-        test takes, and the group each one's error is taken about the mean of: by default
-        every one, by record."""
-        return rec.judged_groups(self.name)
 
     def poorly_determined(self, result, rec: DiagnosisRecord) -> str | None:
         """Why an accepted effect is not pinned down by the record (a 95 % interval the
@@ -306,12 +300,6 @@ class Creep(Candidate):
                     f"memory of the path; record holds of at least {c.hold_min_s:g} s at "
                     f"several levels in both parts")
         return None
-
-    def judged(self, rec):
-        # while the input holds, the path memory stands still: how the error moves in a hold
-        # is a relaxation's (or a drift's), while the level the model puts a hold at is its
-        # path memory's, one draw per hold, which a slow block can shift as well
-        return rec.judged_groups(self.name, in_holds=True)
 
     def probe(self, rec, model, result):
         ev = result.evidence

@@ -5,11 +5,9 @@ fit rows) lowers the held-out free-run squared error significantly and materiall
 
 * the loss differential ``d_k = e_cur_k^2 - e_new_k^2`` over the held-out samples (those
   within the fit part's voltage range, :meth:`DiagnosisRecord.judged_for`: on a record
-  played from a proposed experiment, the rows of the effect's own probe; of those, a
-  creep's test takes the ones inside input holds, :meth:`Candidate.judged`), each error
-  taken about its mean over its record's held-out rows (a creep's over its hold's), is
-  tested by Diebold-Mariano: its mean over a HAC (Bartlett, Newey-West) standard error,
-  with the Harvey-Leybourne-Newbold
+  played from a proposed experiment, the rows of the effect's own probe), each error taken
+  about its mean over its record's held-out rows, is tested by Diebold-Mariano: its mean
+  over a HAC (Bartlett, Newey-West) standard error, with the Harvey-Leybourne-Newbold
   small-sample factor, one-sided against Student's t; the bandwidth covers the
   differential's own autocorrelation (a free-run error is slow, so its samples are far from
   independent); the held-out offset, one draw per record, cannot be tested;
@@ -21,10 +19,10 @@ fit rows) lowers the held-out free-run squared error significantly and materiall
   gain) and that of the errors as they are (a block must not move the level away).
 
 A candidate the rule does not accept, whose block the fit rows support and whose held-out
-gains (the tested one and the whole) have the right sign, is undecided rather than rejected
-when the held-out rows are too few to decide it: when the test would pass with less than
-``min_power`` probability at the gain the fit rows show (:func:`power`, at Holm's first
-level). A record with its probe decides it.
+gain has the right sign, is undecided rather than rejected when the held-out rows are too
+few to decide it: when the test would pass with less than ``min_power`` probability at the
+gain the fit rows show (:func:`power`, at Holm's first level). A record with its probe
+decides it.
 
 Of the candidates that pass, the round accepts the one with the largest mean gain; the next
 round refits the rest around it. Written by hand: SciPy has no Diebold-Mariano test and the
@@ -71,22 +69,18 @@ def about_means(e, groups=None) -> np.ndarray:
     return out
 
 
-def loss_differential_test(e_current, e_candidate, margin_mm2: float, groups=None,
-                           tested=None) -> LossTest:
+def loss_differential_test(e_current, e_candidate, margin_mm2: float, groups=None
+                           ) -> LossTest:
     """Diebold-Mariano test that the candidate's squared held-out error is lower, on each
-    error about its mean over its group (``groups``, a label per tested sample: its
-    record's held-out rows, or for a creep its input hold): an error constant over a
-    record's held-out part (the free run's offset, set by where the model's slow misfit
-    stands when that part begins) is one draw however many rows carry it, which a HAC
-    variance over at most a quarter of the rows would count as many. ``tested``: which of
-    the samples the test takes (a mask; None: all). Materiality (:attr:`LossTest.material`)
-    is judged on both gains, the tested one about the means and that of the errors as they
-    are over every sample: a block that explains the error's course but moves its level
-    away is no better."""
+    error about its mean over each record's held-out rows (``groups``: the record of each
+    sample): an error constant over a record's held-out part (the free run's offset, set by
+    where the model's slow misfit stands when that part begins) is one draw however many
+    rows carry it, which a HAC variance over at most a quarter of the rows would count as
+    many. Materiality (:attr:`LossTest.material`) is judged on both gains, the tested one
+    about the means and that of the errors as they are: a block that explains the error's
+    course but moves its level away is no better."""
     e_cur, e_new = np.asarray(e_current, float), np.asarray(e_candidate, float)
     gain = float(np.mean(e_cur ** 2 - e_new ** 2))
-    if tested is not None:
-        e_cur, e_new = e_cur[tested], e_new[tested]
     d = about_means(e_cur, groups) ** 2 - about_means(e_new, groups) ** 2
     n = d.size
     mean = float(d.mean())

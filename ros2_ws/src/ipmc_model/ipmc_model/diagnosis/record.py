@@ -53,17 +53,6 @@ class Excitation:
 
 
 @dataclass(frozen=True)
-class Judged:
-    """How an effect's test takes its judged rows: ``tested``, which of them (a mask over
-    them), and ``groups``, a label per tested row, its error taken about its group's mean;
-    ``by_hold``: the groups are the input's holds (else the records)."""
-
-    tested: np.ndarray
-    groups: np.ndarray
-    by_hold: bool
-
-
-@dataclass(frozen=True)
 class Segment:
     """One record's rows in the joined record: [start, stop), held out from ``cut`` on."""
 
@@ -176,25 +165,11 @@ class DiagnosisRecord:
         of ``effect``'s probes where the records have them."""
         return (y_model - self.y_mm)[self.judged_for(effect)]
 
-    def judged_groups(self, effect: str | None = None, in_holds: bool = False) -> Judged:
-        """Which of ``effect``'s judged rows (:meth:`judged_for`) its test takes and the
-        group each one's error is taken about the mean of (:func:`decision.about_means`):
-        every one, by record; with ``in_holds``, those inside the input's holds, each hold a
-        group of its own, unless none is (a creep fitted as a rival on a moving input)."""
-        rows = self.judged_for(effect)
+    def judged_segments(self, effect: str | None = None) -> np.ndarray:
+        """Which joined record (its index in ``segments``) each of ``effect``'s judged rows
+        belongs to."""
         starts = np.array([s.start for s in self.segments])
-        by_record = (np.searchsorted(starts, np.arange(rows.size), "right") - 1)[rows]
-        every = np.ones(int(rows.sum()), dtype=bool)
-        if not in_holds:
-            return Judged(every, by_record, False)
-        hold = np.full(rows.size, -1)
-        for s in self.segments:
-            for a, b in find_holds(self.u_v[s.start:s.stop], self.dt_s, self.config.hold_min_s):
-                hold[s.start + a:s.start + b] = s.start + a   # a label per hold: its start
-        inside = hold[rows] >= 0
-        if not inside.any():
-            return Judged(every, by_record, False)
-        return Judged(inside, hold[rows][inside], True)
+        return np.searchsorted(starts, np.flatnonzero(self.judged_for(effect)), "right") - 1
 
     def judged_for(self, effect: str | None = None) -> np.ndarray:
         """The judged rows ``effect``'s test uses: its probes' held-out rows where a record

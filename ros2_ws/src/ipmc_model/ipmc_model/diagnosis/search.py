@@ -27,7 +27,7 @@ from .config import DiagnosisConfig
 from .decision import holm, loss_differential_test, passes, power
 from .experiment import design_experiment
 from .parallel import fan_out, using
-from .record import DiagnosisRecord, Judged
+from .record import DiagnosisRecord
 from .results import CandidateResult, Diagnosis, Evidence, FitScreen, Outcome, RecordShare, Round
 
 #: Trust-region iterations of the core model's first fit and of its candidates' fresh refits
@@ -103,16 +103,11 @@ def per_record(e_cur: np.ndarray, e_new: np.ndarray, rec: DiagnosisRecord,
     return tuple(out)
 
 
-def _judged_on(rec: DiagnosisRecord, effect: str, how: Judged) -> str:
-    """Where ``effect`` was judged (``how``), when not on every judged held-out row by
-    record."""
-    probe = effect in rec.probe_rows
-    whose = "its probe's" if probe else "the"
-    rows = f"{whose} {int(rec.judged_for(effect).sum())} held-out rows"
-    if how.by_hold:
-        return (f"{rows} (tested on the {int(how.tested.sum())} in "
-                f"{np.unique(how.groups).size} input holds, each error about its hold's mean)")
-    return rows if probe else ""
+def _judged_on(rec: DiagnosisRecord, effect: str) -> str:
+    """Where ``effect`` was judged, when not on every judged held-out row."""
+    if effect not in rec.probe_rows:
+        return ""
+    return f"its probe's {int(rec.probe_rows[effect].sum())} held-out rows"
 
 
 def _rms(e: np.ndarray) -> float:
@@ -165,15 +160,14 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
                              if why is not None else
                              CandidateResult(name, Outcome.REJECTED, out, number))
             continue
-        how = CANDIDATES[name].judged(rec)
         e_cur = rec.judged_error(y_cur, name)
         e_new = rec.judged_error(out.model.simulate(rec.u_v), name)
-        test = loss_differential_test(e_cur, e_new, margin, how.groups, how.tested)
+        test = loss_differential_test(e_cur, e_new, margin, rec.judged_segments(name))
         screen = fit_screen(sse_fit, n_eff, CANDIDATES[name], out.model, rec, cfg.family_alpha)
         tested[name] = (out, Evidence(_rms(e_cur), _rms(e_new), test, out.params, out.scan,
                                       screen=screen,
                                       records=per_record(e_cur, e_new, rec, name),
-                                      judged_on=_judged_on(rec, name, how)))
+                                      judged_on=_judged_on(rec, name)))
     # the family is the candidates the round may accept and the fit rows support; rivals
     # (not testable) are tested beside it
     screened = {n: ev for n, (_, ev) in tested.items() if ev.screen.passed}
@@ -202,10 +196,8 @@ def _too_few(res: CandidateResult, cfg: DiagnosisConfig, family: int, rec: Diagn
     at the gain they show is below ``min_power``), if they cannot and a probe can; None if
     the rejection stands."""
     sc, t = res.evidence.screen, res.evidence.test
-    # a gain below the materiality margin is rejected however many rows there were, and so
-    # is one of the wrong sign, the tested one (about the held-out means) or the whole
-    right_sign = t.mean_gain_mm2 > 0 and not t.centred_gain_mm2 <= 0
-    if not (sc.passed and right_sign and sc.mean_gain_mm2 >= t.margin_mm2):
+    # a gain below the materiality margin is rejected however many rows there were
+    if not (sc.passed and t.mean_gain_mm2 > 0 and sc.mean_gain_mm2 >= t.margin_mm2):
         return None
     level = cfg.family_alpha / max(1, family)   # Holm's first step
     pw = power(t, sc.mean_gain_mm2, level)
