@@ -919,14 +919,20 @@ def test_a_drift_accepted_on_a_moving_input_gets_its_probe_to_confirm_it():
 def test_a_creep_whose_time_constant_is_bounded_on_neither_side_is_outside_its_range():
     """A relaxation is its time constant: a creep whose profile stays within the 95 % bound
     at every time constant the record can show took up a slow misfit, and is rejected; one
-    open end only asks for longer holds, and a closed interval is a creep."""
+    open end only asks for longer holds, and a closed interval is a creep, unless its gain's
+    interval holds zero (the fit rows do not tell it from none)."""
     from ipmc_model.diagnosis.candidates import creep_outside
 
     data = plant_record({}, 60.0, 1, holds=True)
     rec = DiagnosisRecord(data.t_s, data.u_v, data.y_mm, DiagnosisConfig())
 
-    def outside(tau_s, ci, open_ends):
-        return creep_outside({"tau_s": tau_s, "tau_ci_s": ci, "tau_ci_open": open_ends}, rec)
+    def outside(tau_s, ci, open_ends, gain_ci=(-0.3, -0.1)):
+        return creep_outside({"tau_s": tau_s, "tau_ci_s": ci, "tau_ci_open": open_ends,
+                              "gain_ci_mm_per_v": list(gain_ci)}, rec)
+
+    assert "holds zero" in outside(348.0, [78.0, 350.0], [False, True], (-0.003, 0.042))
+    assert "holds zero" in outside(20.0, [15.0, 35.0], [False, False], (-0.2, 0.0))
+    assert outside(40.0, [12.0, 80.0], [False, True], (0.02, 0.09)) is None
 
     assert "bounded on neither side" in outside(360.0, [3.3, 362.0], [True, True])
     assert outside(40.0, [12.0, 80.0], [False, True]) is None

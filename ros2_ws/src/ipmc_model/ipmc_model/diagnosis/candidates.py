@@ -553,9 +553,10 @@ def judged_on_profile(prof: Profile, after: GeneralizedPI, rec: DiagnosisRecord,
 
 def creep_outside(params: dict, rec: DiagnosisRecord) -> str | None:
     """Why a creep estimated on every row is no creep, or None: a relaxation faster than a
-    creep, or a time constant the record bounds on neither side (a relaxation is defined by
+    creep, a time constant the record bounds on neither side (a relaxation is defined by
     its time constant; a block that fits as well at every one the record can show took up a
-    slow misfit, which any slow block fits)."""
+    slow misfit, which any slow block fits), or a gain whose interval holds zero (as a
+    delay or a dead zone whose profile adds less than its resolution: no size shown)."""
     low = rec.config.creep_min_tau_s
     lo, hi = params["tau_ci_s"]
     if params["tau_s"] < low:
@@ -566,6 +567,11 @@ def creep_outside(params: dict, rec: DiagnosisRecord) -> str | None:
         return (f"estimated on every row its time constant is bounded on neither side (95 % "
                 f"interval {lo:.3g}-{hi:.3g} s, every one the record can show): the block "
                 f"took up a slow misfit of the model, not a relaxation")
+    g_lo, g_hi = params["gain_ci_mm_per_v"]
+    if g_lo <= 0.0 <= g_hi:
+        return (f"estimated on every row its gain's 95 % interval over its time constant's "
+                f"({g_lo:.3g} to {g_hi:.3g} mm/V) holds zero: the fit rows do not tell it "
+                f"from no creep")
     return None
 
 
