@@ -916,7 +916,7 @@ def test_a_drift_accepted_on_a_moving_input_gets_its_probe_to_confirm_it():
     assert "accepted on a moving input" in ends[0].reason
 
 
-def test_a_creep_whose_time_constant_is_bounded_on_neither_side_is_outside_its_range():
+def test_a_creep_the_record_does_not_bound_or_size_is_outside_its_range():
     """A relaxation is its time constant: a creep whose profile stays within the 95 % bound
     at every time constant the record can show took up a slow misfit, and is rejected; one
     open end only asks for longer holds, and a closed interval is a creep, unless its gain's

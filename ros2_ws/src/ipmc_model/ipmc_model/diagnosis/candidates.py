@@ -569,9 +569,8 @@ def creep_outside(params: dict, rec: DiagnosisRecord) -> str | None:
                 f"took up a slow misfit of the model, not a relaxation")
     g_lo, g_hi = params["gain_ci_mm_per_v"]
     if g_lo <= 0.0 <= g_hi:
-        return (f"estimated on every row its gain's 95 % interval over its time constant's "
-                f"({g_lo:.3g} to {g_hi:.3g} mm/V) holds zero: the fit rows do not tell it "
-                f"from no creep")
+        return (f"estimated on every row its gain's 95 % interval ({g_lo:.3g} to "
+                f"{g_hi:.3g} mm/V) holds zero: the fit rows do not tell it from no creep")
     return None
 
 
