@@ -148,10 +148,10 @@ def found_params(inv: Investigation) -> str:
 def clean_twin(inv: Investigation, rate_hz: float, seed: int, together: bool
                ) -> tuple[float, list[str]]:
     """The clean plant under the last round's input (every round's, ``together``), the same
-    seeds, diagnosed as the investigation's last round was: the final held-out error and what
-    it found there."""
+    seeds, split and judged on the same rows as the investigation's last round: the final
+    held-out error and what it found there."""
     first = 0 if together else len(inv.rounds) - 1
-    d = clean_diagnosis([(f"round {i + 1}", rnd.played.u_v, seed + i, ())
+    d = clean_diagnosis([(f"round {i + 1}", rnd.played.u_v, seed + i, rnd.played.parts)
                          for i, rnd in enumerate(inv.rounds[first:], start=first)],
                         1.0 / rate_hz)
     return d.rmse_after_mm, d.effects_found

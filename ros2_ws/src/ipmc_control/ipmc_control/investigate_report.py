@@ -134,8 +134,9 @@ def markdown(inv: Investigation, s: dict, out: Path) -> str:
              f"Metric: {s['metric']}.", "",
              "Each new record is diagnosed on its own, from the core model refitted on its fit "
              "part: the experiment plays the probes after an identification input and repeats "
-             "them as the held-out part, so that record alone judges each effect on the input "
-             "that shows it.", ""]
+             "them as the held-out part, each copy after a memory wipe (both start from the "
+             "same state), so that record alone judges each effect on the input that shows "
+             "it.", ""]
     for r, rs in zip(inv.rounds, s["rounds"], strict=True):
         lines += _round_lines(r, rs, out)
     if s["model_after"]:

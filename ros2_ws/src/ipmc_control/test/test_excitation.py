@@ -94,6 +94,9 @@ def test_an_experiment_of_ipmc_diagnose_plays_its_voltages(tmp_path):
     (tmp_path / "fast.json").write_text(json.dumps({**doc, "rate_hz": 200.0}))
     with pytest.raises(ExcitationError, match="200 Hz but the plant at 100 Hz"):
         load_excitation(tmp_path / "fast.json", 100.0)
+    (tmp_path / "newer.json").write_text(json.dumps({**doc, "format_version": 99}))
+    with pytest.raises(ExcitationError, match="format version 99; this ipmc-ros reads"):
+        load_excitation(tmp_path / "newer.json", 100.0)
 
 
 @pytest.mark.parametrize("lockstep,record", [(False, "bag"), (True, "bag"), (True, None)])

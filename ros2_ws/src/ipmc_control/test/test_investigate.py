@@ -254,16 +254,19 @@ def clean_run(tmp_path_factory) -> dict:
     return _investigate_in_process(tmp_path_factory)
 
 
-def clean_twin_rmse_mm(record_csv: Path) -> float:
+def clean_twin_rmse_mm(round_dir: Path) -> float:
     """Held-out free-run RMSE of the diagnosis's core model on the clean simulated IPMC under
-    the voltages of ``record_csv``."""
+    the voltages of the round's record, split where the experiment it played marks."""
     from ipmc_driver.dataio import load_record
     from ipmc_driver.plant import IpmcPlant
+    from ipmc_model.diagnosis.experiment import read_experiment
     from ipmc_model.diagnosis.search import diagnose_records
 
-    u = load_record(record_csv).u_v
+    u = load_record(round_dir / "record.csv").u_v
+    parts = read_experiment(round_dir / "experiment.json")[0]   # played in process: no lag
     run = IpmcPlant(seed=7, dt_s=1.0 / RATE_HZ).run(u)
-    return diagnose_records([("clean", run.t_s, u, run.y_mm)], candidates=[]).rmse_before_mm
+    return diagnose_records([("clean", run.t_s, u, run.y_mm, parts)],
+                            candidates=[]).rmse_before_mm
 
 
 @pytest.mark.timeout(240)
@@ -281,7 +284,7 @@ def test_creep_hidden_by_a_random_sine_is_named_after_the_proposed_experiment(cr
     assert -0.2 < creep["gain_mm_per_v"] < -0.07
     # the error left is the core model's own on this experiment: within 1.2x that of the
     # same input on the clean plant (its core fitted and judged the same way)
-    clean = clean_twin_rmse_mm(creep_run["dir"] / "round_2" / "record.csv")
+    clean = clean_twin_rmse_mm(creep_run["dir"] / "round_2")
     assert second["rmse_after_mm"] < min(1.2 * clean, second["rmse_before_mm"])
     assert (creep_run["dir"] / "round_2" / "record.csv").is_file()
     assert Path(creep_run["model_after"]).is_file()

@@ -640,7 +640,9 @@ def test_cli_writes_the_report_and_a_model_that_runs(tmp_path, capsys):
     assert "effects found: delay" in capsys.readouterr().out
     # creep was not testable (no holds): the report proposes the record that decides it
     x = json.loads(Path(s["next_experiment"]).read_text())
-    assert "creep" in x["decides"] and x["fit_share"] == 0.7
+    # the held-out part is the probes' last copies: the record is split where they start
+    held_s = min(p["start_s"] for p in x["parts"] if p["held_out"])
+    assert "creep" in x["decides"] and x["fit_share"] == pytest.approx(held_s / x["duration_s"])
     assert max(abs(v) for v in x["u_v"]) <= 3.0 and "## The next experiment" in report
 
 
@@ -707,11 +709,12 @@ def test_the_next_experiment_makes_each_effect_testable():
     n = probes[4].u_v.size
     assert np.array_equal(x.u_v[:n], x.u_v[-n:]) and np.ptp(x.u_v[:n]) > 2.0
     new = IpmcPlant(seed=4, dt_s=1 / RATE).run(x.u_v)
-    rec2 = DiagnosisRecord(new.t_s, x.u_v, new.y_mm, cfg)
+    rec2 = DiagnosisRecord(new.t_s, x.u_v, new.y_mm, cfg, parts=x.parts)
     model2 = core_model(rec2)
     assert [C[n].not_testable(rec2, model2, False) for n in names] == [None] * len(names)
     held = [p for p in x.parts if p.start_s >= rec2.segments[0].cut * rec2.dt_s - 1e-9]
-    assert {p.effect for p in held} == {*names, "drift"}
+    assert {p.effect for p in held if p.held_out} == {*names, "drift"}
+    assert all(p.held_out or p.name == "memory wipe" for p in held)
 
 
 def test_a_record_of_an_experiment_judges_each_effect_on_its_own_probe():
@@ -735,14 +738,40 @@ def test_a_record_of_an_experiment_judges_each_effect_on_its_own_probe():
         assert rows[-1] * rec.dt_s < part.start_s + part.duration_s
     both = rec.judged_for("creep") | rec.judged_for("delay")
     assert not np.any(rec.judged_for("creep") & rec.judged_for("delay"))
-    # the held-out part is the probes (and the identification input's last rows when the
-    # experiment's 60 s minimum of it pushes the split before them)
+    # the record is split where the probes' last copies start: its held-out part is them
     first_probe_s = min(p.start_s for p in held.values())
-    assert not np.any(both & ~rec.judged)
-    assert np.all(np.flatnonzero(rec.judged & ~both) * rec.dt_s < first_probe_s)
+    assert rec.segments[0].cut * rec.dt_s == pytest.approx(first_probe_s)
+    assert np.array_equal(both, rec.judged)
     assert np.array_equal(rec.judged_for("drift"), rec.judged)
     plain = DiagnosisRecord(run.t_s, x.u_v, run.y_mm, cfg)   # no parts: every judged row
     assert np.array_equal(plain.judged_for("delay"), plain.judged)
+
+
+def test_both_copies_of_an_experiments_probes_start_from_the_same_state():
+    """A memory wipe before each copy of the probes: the simulated IPMC (without sensor
+    noise) and the core model fitted on the first record each bend alike in both copies,
+    though the inputs before them differ (a rest there instead leaves the core's plays and
+    path memory where the input left them: its copies then differ by 0.03-0.2 mm RMS)."""
+    from ipmc_driver.plant import load_plant_params
+    from ipmc_model.diagnosis.experiment import Probe, assemble, holds
+
+    exact = {**load_plant_params(), "noise_std_mm": 0.0, "resolution_mm": 0.0}
+    _, u = random_sine(120.0, RATE, 3.0, seed=1)
+    first = IpmcPlant(exact, seed=1, dt_s=1 / RATE).run(u)
+    rec0 = DiagnosisRecord(first.t_s, u, first.y_mm, DiagnosisConfig())
+    x = assemble([Probe("creep", holds((2.4, -2.4, 1.2, -1.2), 30.0, RATE), "holds"),
+                  Probe("delay", holds((1.0, 0.0, -1.0, 0.5), 1.5, RATE), "steps")], rec0)
+    plant = IpmcPlant(exact, seed=2, dt_s=1 / RATE).run(x.u_v).y_mm
+    core = core_model(rec0).simulate(x.u_v)
+    fit = [p for p in x.parts if p.effect and not p.held_out]
+    held = [p for p in x.parts if p.held_out]
+    assert [p.effect for p in fit] == [p.effect for p in held] == ["creep", "delay"]
+    for a, b in zip(fit, held, strict=True):
+        i, j, n = (int(round(v * RATE)) for v in (a.start_s, b.start_s, a.duration_s))
+        assert np.array_equal(x.u_v[i - 1:i + n], x.u_v[j - 1:j + n])  # the wipe's end too
+        for y, most_mm in ((plant, 1e-3), (core, 0.01)):   # the sensor's noise: 0.005 mm
+            assert np.sqrt(np.mean((y[i:i + n] - y[j:j + n]) ** 2)) < most_mm
+    assert x.fit_share == pytest.approx(held[0].start_s / x.duration_s)
 
 
 def test_a_drift_is_judged_on_its_probe_at_the_two_ends_of_an_experiment():

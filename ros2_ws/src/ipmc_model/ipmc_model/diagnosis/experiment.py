@@ -10,11 +10,18 @@ plays them again as the held-out part, so that the diagnosis of the new record j
 effect on exactly the excitation that shows it, and the fit part has seen that excitation
 too (the judged rows stay within its range).
 
-Layout, with the diagnosis's split (``fit_share``): ``[end probes] [base, first half]
-[probes] [base, second half] | [probes] [end probes]``: the probes are ``1 - fit_share`` of
-the whole, so the last copies are the held-out part. An end probe (a drift's) opens and
-closes the experiment: what the same input bends differently at the two ends is what changed
-over the record.
+Layout: ``[end probes] [base] [wipe] [probes] [wipe] | [probes] [wipe] [end probes]``: the
+held-out part is the probes' last copies, marked ``held_out`` in the parts, and a record that
+comes with the parts is split where they start (``fit_share`` is that point's share of the
+whole). The base, the identification input, covers the record's range; the probes of the fit
+part excite the core as well, at the levels they are judged at. The wipe, a slow sine whose
+amplitude falls to 0 V, erases the memory of the path (each reversal smaller than the last)
+before each copy of the probes: both copies start from the same state, so a steady actuator
+bends alike in both, and so does the core model (after different inputs the simulated
+IPMC's two copies differed by 0.06-0.16 mm RMS, the core's by 0.09-0.29 mm: a history misfit
+differently in each, which a drift or a slow creep could take up). An end probe (a drift's)
+opens and closes the experiment: what the same input bends differently at the two ends is
+what changed over the record.
 """
 
 from __future__ import annotations
@@ -29,12 +36,23 @@ from .record import DiagnosisRecord
 from .results import Diagnosis, Outcome
 
 EXPERIMENT_FORMAT = "ipmc-ros-experiment"
-EXPERIMENT_FORMAT_VERSION = 1
+EXPERIMENT_FORMAT_VERSION = 2
 #: The H-bridge's limit (V): no proposed voltage goes beyond it.
 ACTUATOR_LIMIT_V = 3.0
 #: Probe levels as a share of the record's largest |u|: inside the range the model was
 #: identified on, with room for the identification input around them.
 LEVEL_SHARE = 0.8
+#: The identification input's length (s): a minute of the mixed input (fast and slow random
+#: sines and held levels over the record's range).
+BASE_S = 60.0
+#: The memory wipe's period (s): far slower than the charging (IPMC corners 0.5-1.5 Hz), so
+#: the charge, where the memory is, follows the sine.
+WIPE_PERIOD_S = 5.0
+#: The wipe's periods: at the probes' level (0.8 x 3 V) they travel 2 x 2.4 V x 12 = 58 V,
+#: 1.8 times the longest path memory of the core model (32 V of travel); its two copies of
+#: the probes then differ by about the sensor's noise (at most 0.006 mm RMS on the simulated
+#: IPMC; the plant's by 0.0001 mm), which cannot show as an effect.
+WIPE_CYCLES = 12
 
 
 @dataclass(frozen=True)
@@ -55,6 +73,9 @@ class ExperimentPart:
     start_s: float
     duration_s: float
     reason: str
+    #: Part of the held-out part (a probe's last copy); the record is split where the first
+    #: such part starts.
+    held_out: bool = False
 
 
 @dataclass(frozen=True)
@@ -112,30 +133,34 @@ def design_experiment(d: Diagnosis, rec: DiagnosisRecord) -> Experiment | None:
 
 def assemble(probes: list[Probe], rec: DiagnosisRecord, seed: int = 0) -> Experiment:
     """Probes and the identification input in the layout of the module's docstring."""
-    rate = 1.0 / rec.dt_s
-    share = rec.config.fit_share
-    probe_u = np.concatenate([p.u_v for p in probes])
-    n_probe = probe_u.size
-    n_total = int(np.ceil(n_probe / (1.0 - share)))
-    n_base = max(n_total - 2 * n_probe, int(round(60.0 * rate)))
+    rate, level = 1.0 / rec.dt_s, probe_level_v(rec)
     amp = min(max(abs(rec.excitation.u_min_v), abs(rec.excitation.u_max_v)), ACTUATOR_LIMIT_V)
-    _, base = mixed(n_base / rate, rate, amp, seed=seed)
-    half = base.size // 2
+    _, base = mixed(BASE_S, rate, amp, seed=seed)
+    clear = ("memory wipe", "", wipe(level, WIPE_PERIOD_S, WIPE_CYCLES, rate),
+             f"a sine decaying from +-{level:.2f} V to 0 V over {WIPE_CYCLES} periods of "
+             f"{WIPE_PERIOD_S:g} s: it erases the memory of the path, so each copy of the "
+             f"probes after it starts from the same state", False)
     inner, ends = [p for p in probes if not p.ends], [p for p in probes if p.ends]
-    pieces = [(f"{p.effect} probe, at the start", p.effect, p.u_v, p.reason) for p in ends]
-    pieces.append(("identification input, first half", "", base[:half],
-                   "covers the record's range in amplitude and frequency for the core model"))
-    pieces += [(f"{p.effect} probe", p.effect, p.u_v, p.reason) for p in inner]
-    pieces.append(("identification input, second half", "", base[half:],
-                   "covers the record's range in amplitude and frequency for the core model"))
-    pieces += [(f"{p.effect} probe, repeated as the held-out part", p.effect, p.u_v, p.reason)
-               for p in inner + ends]
+
+    def copies(group: list[Probe], held: bool, where: str) -> list[tuple]:
+        return [(f"{p.effect} probe{where}", p.effect, p.u_v, p.reason, held) for p in group]
+
+    pieces = copies(ends, False, ", at the start")   # from rest: the state a wipe leaves
+    pieces.append(("identification input", "", base, "covers the record's range in "
+                   "amplitude and frequency for the core model", False))
+    if inner:
+        pieces += [clear, *copies(inner, False, "")]
+    pieces += [clear, *copies(inner, True, ", repeated as the held-out part")]
+    if inner and ends:
+        pieces.append(clear)
+    pieces += copies(ends, True, ", repeated as the held-out part")
     parts, start = [], 0
-    for name, effect, u, reason in pieces:
-        parts.append(ExperimentPart(name, effect, start / rate, u.size / rate, reason))
+    for name, effect, u, reason, held in pieces:
+        parts.append(ExperimentPart(name, effect, start / rate, u.size / rate, reason, held))
         start += u.size
-    u_all = np.clip(np.concatenate([u for _, _, u, _ in pieces]), -ACTUATOR_LIMIT_V,
+    u_all = np.clip(np.concatenate([piece[2] for piece in pieces]), -ACTUATOR_LIMIT_V,
                     ACTUATOR_LIMIT_V)
+    share = min(p.start_s for p in parts if p.held_out) * rate / u_all.size
     return Experiment(rate, share, u_all, tuple(parts))
 
 
@@ -154,9 +179,15 @@ def read_experiment(path) -> tuple[tuple[ExperimentPart, ...], np.ndarray, float
     if not isinstance(doc, dict) or doc.get("format") != EXPERIMENT_FORMAT:
         raise ValueError(f"{path} is not an experiment of ipmc diagnose (format "
                          f"{EXPERIMENT_FORMAT!r})")
+    version = doc.get("format_version", 1)
+    if not isinstance(version, int) or version > EXPERIMENT_FORMAT_VERSION:
+        raise ValueError(f"{path} is an experiment of format version {version!r}; this "
+                         f"ipmc-ros reads versions 1 to {EXPERIMENT_FORMAT_VERSION}")
     try:
+        # format 1 had no held-out flag: its records split by the diagnosis's share
         parts = tuple(ExperimentPart(str(p["name"]), str(p["effect"]), float(p["start_s"]),
-                                     float(p["duration_s"]), str(p["reason"]))
+                                     float(p["duration_s"]), str(p["reason"]),
+                                     bool(p.get("held_out", False)))
                       for p in doc["parts"])
         return parts, np.asarray(doc["u_v"], dtype=float).reshape(-1), float(doc["rate_hz"])
     except (KeyError, TypeError, ValueError) as exc:
@@ -202,3 +233,10 @@ def sweep(amplitude_v: float, f0_hz: float, f1_hz: float, seconds: float, rate_h
 
     t = np.arange(int(round(seconds * rate_hz))) / rate_hz
     return amplitude_v * chirp(t, f0_hz, seconds, f1_hz, method="logarithmic", phi=-90.0)
+
+
+def wipe(amplitude_v: float, period_s: float, cycles: int, rate_hz: float) -> np.ndarray:
+    """A sine of ``period_s`` whose amplitude falls linearly from ``amplitude_v`` to 0 over
+    ``cycles`` periods: each reversal smaller than the last, it erases a hysteretic memory."""
+    t = np.arange(int(round(cycles * period_s * rate_hz))) / rate_hz
+    return amplitude_v * (1.0 - t / t[-1]) * np.sin(2.0 * np.pi * t / period_s)

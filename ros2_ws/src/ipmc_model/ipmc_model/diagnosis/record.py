@@ -8,10 +8,10 @@ output was not measured (y NaN: a rest, a sample lost on the link) is in neither
 through it.
 
 A record played from a proposed experiment (``next_experiment.json``) may come with the
-experiment's parts: its held-out part is then the probes, one per effect, and an effect with
-a probe there is judged on that probe's rows alone (:meth:`DiagnosisRecord.judged_for`). The
-other probes show other effects: a block's error on them measures how the refit moved the
-rest of the model, not the effect.
+experiment's parts: it is then split where they mark the held-out part (the probes' last
+copies, one per effect), and an effect with a probe there is judged on that probe's rows
+alone (:meth:`DiagnosisRecord.judged_for`). The other probes show other effects: a block's
+error on them measures how the refit moved the rest of the model, not the effect.
 """
 
 from __future__ import annotations
@@ -77,6 +77,18 @@ def _checked(name: str, t_s, u_v, y_mm) -> tuple[np.ndarray, np.ndarray, np.ndar
     return t, u, y, float(np.median(dt))
 
 
+def _cut(record: tuple, n: int, config: DiagnosisConfig, dt_s: float) -> int:
+    """Where a record's held-out part starts: at the first held-out part of the experiment
+    it played (its probes' last copies), else after the config's ``fit_share``."""
+    held = [p.start_s for p in (record[4] if len(record) > 4 else ())
+            if p.held_out]
+    cut = int(round(min(held) / dt_s)) if held else int(round(config.fit_share * n))
+    if not 0 < cut < n:
+        raise ValueError(f"{record[0]}: its experiment's held-out part starts at "
+                         f"{min(held):.1f} s, outside its {n * dt_s:.1f} s")
+    return cut
+
+
 class DiagnosisRecord:
     """Time (s), voltage (V) and tip (mm) of one record, split at its segment's ``cut``: the
     model and every block are fitted on the rows before it and judged on the free run over
@@ -113,7 +125,7 @@ class DiagnosisRecord:
             u.append(ui)
             y.append(yi)
             segs.append(Segment(name, start, start + ui.size,
-                                start + int(round(config.fit_share * ui.size))))
+                                start + _cut(records[i], ui.size, config, self.dt_s)))
             start += ui.size
         self.u_v, self.y_mm = np.concatenate(u), np.concatenate(y)
         # joined records: one clock from the first record's start, the rests included
