@@ -33,8 +33,10 @@ def _parser() -> argparse.ArgumentParser:
                         "which record decided what")
     p.add_argument("--experiment", metavar="FILE",
                    help="the next_experiment.json the last --data record played (ipmc bringup "
-                        "--experiment): each effect with a probe in its held-out part is then "
-                        "judged on that probe's rows, the other probes showing other effects")
+                        "--experiment): that record is then split where the experiment's "
+                        "held-out part starts (the probes' last copies), and each effect with "
+                        "a probe there is judged on that probe's rows, the other probes "
+                        "showing other effects")
     p.add_argument("--model", help="a GPI model file (ipmc identify's default, or a diagnosis's "
                                    "model_after.json), e.g. from another day: kept as it is, "
                                    "and each effect's block is fitted around it (what changed "
