@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -645,7 +646,19 @@ def main(argv: list[str] | None = None) -> int:
     code = run.run(stop, None if total_samples else args.seconds)
     for line in run.summary(Path(args.record).resolve() if args.record else None):
         print(line, flush=True)
+    keep_experiment(args.experiment, args.record)
     return code
+
+
+def keep_experiment(experiment: str | None, record: str | None) -> None:
+    """A copy of the experiment a bag recorded, in the bag's folder: ``ipmc diagnose --data
+    BAG`` then splits the record where the experiment's held-out part starts, as with
+    ``--experiment FILE``."""
+    from ipmc_model.diagnosis.experiment import BAG_EXPERIMENT
+
+    if experiment and record and Path(record).is_dir():
+        shutil.copyfile(experiment, Path(record) / BAG_EXPERIMENT)
+        print(f"the experiment played: {Path(record) / BAG_EXPERIMENT}", flush=True)
 
 
 if __name__ == "__main__":

@@ -322,7 +322,8 @@ def placed_parts(plan: PlannedInput, rec: Recorded, say: Progress
     try:
         return played_parts(plan.parts, plan.u_v, rec.u_v, 1.0 / plan.rate_hz)
     except ValueError as exc:
-        say(f"  {exc}: every held-out row judges each effect")
+        say(f"  {exc}: the record is split at the diagnosis's share, and every held-out "
+            f"row judges each effect")
         return ()
 
 

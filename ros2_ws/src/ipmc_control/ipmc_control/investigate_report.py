@@ -14,7 +14,8 @@ from ipmc_model.diagnosis.experiment import ExperimentPart
 
 from .investigate import Investigation, InvestigationRound
 
-METRIC = ("free-run RMSE (mm) on a record's held-out last 30 %, the model run from the "
+METRIC = ("free-run RMSE (mm) on a record's held-out part (the first record's last 30 %; an "
+          "experiment's record: the last copies of its probes), the model run from the "
           "record's start on its input alone; before: the first round's starting model on "
           "the first record; after: the last round's model (every effect it accepted) on the "
           "last record, whose held-out part repeats the deciding probes")
@@ -51,7 +52,7 @@ def _json_safe(o):
 
 def _part(p: ExperimentPart) -> dict:
     return {"name": p.name, "effect": p.effect, "start_s": p.start_s,
-            "duration_s": p.duration_s, "reason": p.reason}
+            "duration_s": p.duration_s, "reason": p.reason, "held_out": p.held_out}
 
 
 def round_summary(r: InvestigationRound) -> dict:

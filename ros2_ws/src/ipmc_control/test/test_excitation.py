@@ -159,3 +159,21 @@ def test_before_its_listeners_match_a_lockstep_excitation_holds_the_sample_unans
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)
+
+
+def test_a_bag_recorded_with_an_experiment_keeps_it(tmp_path):
+    """``ipmc bringup --experiment FILE --record BAG`` copies FILE into the bag, where ``ipmc
+    diagnose --data BAG`` finds it; nothing is written without a bag folder or experiment."""
+    from ipmc_control.bringup import keep_experiment
+    from ipmc_model.diagnosis.experiment import BAG_EXPERIMENT, Experiment
+
+    exp = tmp_path / "next_experiment.json"
+    exp.write_text(json.dumps(Experiment(100.0, 0.7, np.zeros(300), ()).as_dict()))
+    bag = tmp_path / "day2"
+    keep_experiment(str(exp), str(bag))          # the recording never started: no folder
+    assert not bag.exists()
+    bag.mkdir()
+    keep_experiment(None, str(bag))
+    assert not (bag / BAG_EXPERIMENT).exists()
+    keep_experiment(str(exp), str(bag))
+    assert (bag / BAG_EXPERIMENT).read_text() == exp.read_text()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -22,13 +23,14 @@ from .diagnosis.search import diagnose_records
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="ipmc diagnose",
-        description="Fit a model on the first 70 % of a record, find the physical effects it "
-                    "lacks (creep, drift, delay, dead zone, ...) by their held-out free-run "
-                    "gain, and report the error before and after.")
+        description="Fit a model on the first 70 % of a record (a record of a proposed "
+                    "experiment: up to the last copies of its probes), find the physical "
+                    "effects it lacks (creep, drift, delay, dead zone, ...) by their held-out "
+                    "free-run gain, and report the error before and after.")
     p.add_argument("--data", required=True, action="append", metavar="FILE",
                    help="t,u,y CSV file (s, V, mm) or rosbag2 folder; give it again for more "
                         "records of the same actuator (an experiment after a first record): "
-                        "each is split the same way, the models are fitted on the fit parts of "
+                        "each is split on its own, the models are fitted on the fit parts of "
                         "all and judged on the held-out parts of all, and the report says "
                         "which record decided what")
     p.add_argument("--experiment", metavar="FILE",
@@ -41,7 +43,7 @@ def _parser() -> argparse.ArgumentParser:
                                    "model_after.json), e.g. from another day: kept as it is, "
                                    "and each effect's block is fitted around it (what changed "
                                    "since); default: the diagnosis's own core model, fitted on "
-                                   "the first 70 %% of the data")
+                                   "the fit part of the data")
     p.add_argument("--report", required=True, metavar="DIR", help="output folder")
     p.add_argument("--effects", nargs="+", metavar="NAME", choices=list(CANDIDATES),
                    help=f"candidate effects to try (default all: {', '.join(CANDIDATES)})")
@@ -78,6 +80,15 @@ def _played(path: str, record) -> tuple:
         raise ValueError(f"{name} did not play all of {path}: {exc}") from None
 
 
+def experiment_of(data: str, given: str | None) -> str | None:
+    """The experiment a record played: ``given`` (``--experiment``), or the copy a bag that
+    ``ipmc bringup --experiment`` recorded keeps; None for a record of another input."""
+    from .diagnosis.experiment import BAG_EXPERIMENT
+
+    kept = Path(data) / BAG_EXPERIMENT
+    return given or (str(kept) if kept.is_file() else None)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``ipmc diagnose``; returns the exit code."""
     args = _parser().parse_args(argv)
@@ -97,8 +108,13 @@ def main(argv: list[str] | None = None) -> int:
             print_notes("ipmc diagnose", notes)
             _progress(f"{path}: {len(rec)} samples at {rec.rate_hz:.4g} Hz")
             records.append((str(path), rec.t_s, rec.u_v, rec.y_mm))
-        if args.experiment:
-            records[-1] = (*records[-1], _played(args.experiment, records[-1]))
+        for i, rec in enumerate(records):
+            played = experiment_of(args.data[i], args.experiment if i == len(records) - 1
+                                   else None)
+            if played:
+                _progress(f"{args.data[i]}: played {played}; split where its held-out part "
+                          f"starts")
+                records[i] = (*rec, _played(played, rec))
         d = diagnose_records(records, model=model, candidates=args.effects,
                              progress=_progress, jobs=args.jobs)
         summary = write_report(d, args.report, data_label=", ".join(map(str, args.data)))

@@ -534,6 +534,22 @@ def test_an_accepted_effect_estimated_outside_its_range_is_rejected_and_the_rest
         assert weak.effects_found[:1] == ["weakening"]
 
 
+def test_a_charging_current_channel_that_bends_below_the_margin_is_outside_its_range():
+    """Adding a block lowers the judged rows' mean squared error by at most its own mean
+    square: a rate dependence whose channel bends less than the materiality margin passed on
+    what its refit moved in the rest of the model, and is rejected; a real one is kept."""
+    rec_ = plant_record({}, 60.0, 1)
+    rec = DiagnosisRecord(rec_.t_s, rec_.u_v, rec_.y_mm, DiagnosisConfig())
+    model = core_model(rec)
+    cand = CANDIDATES["rate_dependence"]
+    for gain, outside in ((1e-5, True), (0.1, False)):
+        after = copy.deepcopy(model)
+        after.output_rate, after.output_coef_ = True, np.r_[gain, model.output_coef_]
+        refined = cand.refine(model, after, rec, False)
+        assert (refined is not None and "below the materiality margin" in refined.outside) \
+            is outside
+
+
 def test_a_creep_whose_relaxation_is_faster_than_a_creep_is_outside_its_range():
     """The creep's time constant is estimated below the creep's range too: a relaxation
     faster than ``creep_min_tau_s`` that the test's bank took up is not named creep."""
@@ -705,9 +721,11 @@ def test_the_next_experiment_makes_each_effect_testable():
     assert fast_input_reason(alone, model, "rate-dependent bending") is None
     x = assemble(probes, rec)
     assert np.max(np.abs(x.u_v)) <= 3.0 and x.decides == sorted((*names, "drift"))
-    assert x.parts[0].effect == x.parts[-1].effect == "drift"
-    n = probes[4].u_v.size
-    assert np.array_equal(x.u_v[:n], x.u_v[-n:]) and np.ptp(x.u_v[:n]) > 2.0
+    # a wipe, then the drift's probe opens; it closes the experiment, after a wipe too
+    assert [p.name for p in x.parts[:2]] == ["memory wipe", "drift probe, at the start"]
+    assert x.parts[-2].name == "memory wipe" and x.parts[-1].effect == "drift"
+    n, k = probes[4].u_v.size, int(round(x.parts[1].start_s * RATE))
+    assert np.array_equal(x.u_v[k:k + n], x.u_v[-n:]) and np.ptp(x.u_v[-n:]) > 2.0
     new = IpmcPlant(seed=4, dt_s=1 / RATE).run(x.u_v)
     rec2 = DiagnosisRecord(new.t_s, x.u_v, new.y_mm, cfg, parts=x.parts)
     model2 = core_model(rec2)
@@ -811,10 +829,11 @@ def test_cli_judges_the_experiment_a_record_played_on_its_probes(tmp_path, capsy
         played_parts,
     )
 
+    delay_steps = holds((1.0, 0.0, -1.0, 0.5, -0.5, 0.0, 1.0, -1.0), 1.5, RATE)   # its probe's
     first = plant_record({}, 60.0, 1, holds=True)
     rec0 = DiagnosisRecord(first.t_s, first.u_v, first.y_mm, DiagnosisConfig())
     x = assemble([Probe("creep", holds((1.5, -1.5), 20.0, RATE), "holds"),
-                  Probe("delay", holds((1.0, 0.0, -1.0, 0.5), 1.5, RATE), "steps")], rec0)
+                  Probe("delay", delay_steps, "steps")], rec0)
     exp = tmp_path / "next_experiment.json"
     exp.write_text(json.dumps(Experiment(RATE, 0.7, x.u_v, x.parts).as_dict()))
     lead = int(3.0 * RATE)
@@ -841,6 +860,41 @@ def test_cli_judges_the_experiment_a_record_played_on_its_probes(tmp_path, capsy
     assert main(["--data", str(short), "--experiment", str(exp), "--report",
                  str(tmp_path / "r2")]) == 1
     assert "did not play all of" in capsys.readouterr().err
+
+
+def test_a_bag_recorded_with_an_experiment_carries_it_to_the_diagnosis(tmp_path):
+    """``ipmc diagnose --data BAG`` finds the experiment ``ipmc bringup --experiment FILE
+    --record BAG`` keeps in the bag (``--experiment`` names it for the last record) and
+    splits there; a version-1 experiment, without held-out parts, splits at the share."""
+    from ipmc_model.diagnose_cli import experiment_of
+    from ipmc_model.diagnosis.experiment import (
+        BAG_EXPERIMENT,
+        Probe,
+        assemble,
+        holds,
+        read_experiment,
+    )
+
+    first = plant_record({}, 60.0, 1)
+    rec0 = DiagnosisRecord(first.t_s, first.u_v, first.y_mm, DiagnosisConfig())
+    x = assemble([Probe("delay", holds((1.0, -1.0) * 4, 1.5, RATE), "steps")], rec0)
+    exp, bag = tmp_path / "next_experiment.json", tmp_path / "day2"
+    exp.write_text(json.dumps(x.as_dict()))
+    bag.mkdir()
+    assert experiment_of(str(bag), None) is None
+    (bag / BAG_EXPERIMENT).write_text(exp.read_text())
+    assert experiment_of(str(bag), None) == str(bag / BAG_EXPERIMENT)
+    assert experiment_of(str(bag), "other.json") == "other.json"
+    run = IpmcPlant(seed=2, dt_s=1 / RATE).run(x.u_v)
+    cut = DiagnosisRecord(run.t_s, x.u_v, run.y_mm, DiagnosisConfig(), parts=x.parts)
+    held_s = next(p.start_s for p in x.parts if p.held_out)
+    assert cut.segments[0].cut == round(held_s * RATE)
+    old = {**x.as_dict(), "format_version": 1,
+           "parts": [{k: v for k, v in vars(p).items() if k != "held_out"} for p in x.parts]}
+    exp.write_text(json.dumps(old))
+    parts = read_experiment(exp)[0]
+    plain = DiagnosisRecord(run.t_s, x.u_v, run.y_mm, DiagnosisConfig(), parts=parts)
+    assert plain.segments[0].cut == round(0.7 * x.u_v.size)
 
 
 def test_records_are_joined_by_unmeasured_rests_and_each_split_the_same_way():
@@ -927,7 +981,8 @@ def test_a_drift_on_a_moving_input_is_not_testable_and_its_probe_is_proposed():
     assert moving.effects_found == [] and moving.next_experiment.decides == ["drift"]
     x = moving.next_experiment
     ends = [p for p in x.parts if p.effect == "drift"]
-    assert len(ends) == 2 and ends[0].start_s == 0.0
+    assert len(ends) == 2 and x.parts[0].name == "memory wipe"   # each copy after a wipe
+    assert ends[0].start_s == pytest.approx(x.parts[0].duration_s)
     assert ends[-1].start_s + ends[-1].duration_s == pytest.approx(x.duration_s)
     held = diagnose(plant_record(fading, 120.0, 1, holds=True), candidates=["drift"])
     assert next(r for r in held.candidates if r.name == "drift").outcome is not \

@@ -916,6 +916,21 @@ class RateDependence(Candidate):
                        output_rate=True)
         return Fitted(m, {"gain_mm_per_v_per_s": float(m.output_coef_[0])})
 
+    def refine(self, before, after, rec, given):
+        # what the channel itself bends on the judged rows: adding it alone lowers their mean
+        # squared error by at most its own mean square, so one below the materiality margin
+        # passed on what the refit moved in the rest of the model, not on a rate dependence
+        v = after._charge(rec.u_v, after._theta)
+        bend = after.output_coef_[0] * after._charging_current(v)[rec.judged_for(self.name)]
+        ms, margin = float(np.mean(bend ** 2)), rec.config.material_noise_share * \
+            rec.excitation.noise_floor_mm ** 2
+        if ms >= margin:
+            return None
+        return Refined({"gain_mm_per_v_per_s": float(after.output_coef_[0])}, outside=(
+            f"the channel itself bends {math.sqrt(ms):.2g} mm RMS on the judged rows, a mean "
+            f"square below the materiality margin ({margin:.3g} mm^2): the gain came from "
+            f"refitting the rest of the model, not from a rate-dependent bending"))
+
     def around(self, model, rec):
         # one gain, fitted by least squares to what the frozen model leaves
         if model.output_rate:

@@ -9,7 +9,8 @@ and then plays them again as the held-out part, so that the diagnosis of the new
 judges each effect on exactly the excitation that shows it, and the fit part has seen that
 excitation too (the judged rows stay within its range).
 
-Layout: ``[end probes] [base] [wipe] [probes] [wipe] | [probes] [wipe] [end probes]``: the
+Layout: ``[wipe] [end probes] [base] [wipe] [probes] [wipe] | [probes] [wipe] [end
+probes]``: the
 held-out part is the probes' last copies, marked ``held_out`` in the parts, and a record that
 comes with the parts is split where they start (``fit_share`` is that point's share of the
 whole). The base, the identification input, covers the record's range; the probes of the fit
@@ -25,17 +26,21 @@ what changed over the record.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ipmc_driver.signals import mixed
 
+from ..hysteresis import DEFAULT_PATH_MEMORY_V
 from .record import DiagnosisRecord
 from .results import Diagnosis, Outcome
 
 EXPERIMENT_FORMAT = "ipmc-ros-experiment"
 EXPERIMENT_FORMAT_VERSION = 2
+#: The copy of the experiment a bag recorded by ``ipmc bringup --experiment`` keeps.
+BAG_EXPERIMENT = "experiment.json"
 #: The H-bridge's limit (V): no proposed voltage goes beyond it.
 ACTUATOR_LIMIT_V = 3.0
 #: Probe levels as a share of the record's largest |u|: inside the range the model was
@@ -47,11 +52,11 @@ BASE_S = 60.0
 #: The memory wipe's period (s): far slower than the charging (IPMC corners 0.5-1.5 Hz), so
 #: the charge, where the memory is, follows the sine.
 WIPE_PERIOD_S = 5.0
-#: The wipe's periods: at the probes' level (0.8 x 3 V) they travel 2 x 2.4 V x 12 = 58 V,
-#: 1.8 times the longest path memory of the core model (32 V of travel); its two copies of
-#: the probes then differ by about the sensor's noise (at most 0.006 mm RMS on the simulated
-#: IPMC; the plant's by 0.0001 mm), which cannot show as an effect.
-WIPE_CYCLES = 12
+#: The wipe's travel (V): 1.8 times the longest path memory of the core model (32 V), as 12
+#: periods from 2.4 V travel; the core's two copies of the probes then differ by about the
+#: sensor's noise (the test of this module: under 0.01 mm RMS on the simulated IPMC), which
+#: cannot show as an effect. Lower levels take more periods.
+WIPE_TRAVEL_V = 1.8 * max(DEFAULT_PATH_MEMORY_V)
 
 
 @dataclass(frozen=True)
@@ -135,8 +140,9 @@ def assemble(probes: list[Probe], rec: DiagnosisRecord, seed: int = 0) -> Experi
     rate, level = 1.0 / rec.dt_s, probe_level_v(rec)
     amp = min(max(abs(rec.excitation.u_min_v), abs(rec.excitation.u_max_v)), ACTUATOR_LIMIT_V)
     _, base = mixed(BASE_S, rate, amp, seed=seed)
-    clear = ("memory wipe", "", wipe(level, WIPE_PERIOD_S, WIPE_CYCLES, rate),
-             f"a sine decaying from +-{level:.2f} V to 0 V over {WIPE_CYCLES} periods of "
+    cycles = math.ceil(WIPE_TRAVEL_V / (2.0 * level))   # 2 x the amplitude a period on average
+    clear = ("memory wipe", "", wipe(level, WIPE_PERIOD_S, cycles, rate),
+             f"a sine decaying from +-{level:.2f} V to 0 V over {cycles} periods of "
              f"{WIPE_PERIOD_S:g} s: it erases the memory of the path, so each copy of the "
              f"probes after it starts from the same state", False)
     inner, ends = [p for p in probes if not p.ends], [p for p in probes if p.ends]
@@ -144,7 +150,8 @@ def assemble(probes: list[Probe], rec: DiagnosisRecord, seed: int = 0) -> Experi
     def copies(group: list[Probe], held: bool, where: str) -> list[tuple]:
         return [(f"{p.effect} probe{where}", p.effect, p.u_v, p.reason, held) for p in group]
 
-    pieces = copies(ends, False, ", at the start")   # from rest: the state a wipe leaves
+    # at the start too: an actuator at rest keeps the memory of how it got there
+    pieces = [clear, *copies(ends, False, ", at the start")] if ends else []
     pieces.append(("identification input", "", base, "covers the record's range in "
                    "amplitude and frequency for the core model", False))
     if inner:
@@ -179,18 +186,26 @@ def read_experiment(path) -> tuple[tuple[ExperimentPart, ...], np.ndarray, float
         raise ValueError(f"{path} is not an experiment of ipmc diagnose (format "
                          f"{EXPERIMENT_FORMAT!r})")
     version = doc.get("format_version", 1)
-    if not isinstance(version, int) or version > EXPERIMENT_FORMAT_VERSION:
+    if not isinstance(version, int) or not 1 <= version <= EXPERIMENT_FORMAT_VERSION:
         raise ValueError(f"{path} is an experiment of format version {version!r}; this "
                          f"ipmc-ros reads versions 1 to {EXPERIMENT_FORMAT_VERSION}")
     try:
         # format 1 had no held-out flag: its records split by the diagnosis's share
         parts = tuple(ExperimentPart(str(p["name"]), str(p["effect"]), float(p["start_s"]),
                                      float(p["duration_s"]), str(p["reason"]),
-                                     bool(p.get("held_out", False)))
+                                     _flag(p, "held_out", required=version >= 2))
                       for p in doc["parts"])
         return parts, np.asarray(doc["u_v"], dtype=float).reshape(-1), float(doc["rate_hz"])
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"{path} lacks readable parts, u_v or rate_hz: {exc!r}") from None
+
+
+def _flag(part: dict, key: str, required: bool) -> bool:
+    """A part's boolean ``key`` (False where it may be missing)."""
+    value = part[key] if required else part.get(key, False)
+    if not isinstance(value, bool):
+        raise TypeError(f"{key} is {value!r}, not true or false")
+    return value
 
 
 def played_parts(parts, u_experiment_v: np.ndarray, u_record_v: np.ndarray, dt_s: float

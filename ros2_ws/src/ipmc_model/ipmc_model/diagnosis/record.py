@@ -2,8 +2,9 @@
 
 One record or several (another day's, an experiment's) are joined into one: in that order,
 each separated by a rest at 0 V whose output is not measured. Every model runs over the
-whole, is fitted on the fit rows (the first share of each record) and judged on the free run
-over the held-out rows (the rest of each); each record is split the same way. A row whose
+whole, is fitted on the fit rows (the first share of each record, or up to the held-out part
+of the experiment it played) and judged on the free run over the held-out rows (the rest of
+each). A row whose
 output was not measured (y NaN: a rest, a sample lost on the link) is in neither: models run
 through it.
 
@@ -85,7 +86,8 @@ def _cut(record: tuple, n: int, config: DiagnosisConfig, dt_s: float) -> int:
     cut = int(round(min(held) / dt_s)) if held else int(round(config.fit_share * n))
     if not 0 < cut < n:
         raise ValueError(f"{record[0]}: its experiment's held-out part starts at "
-                         f"{min(held):.1f} s, outside its {n * dt_s:.1f} s")
+                         f"{min(held):.1f} s: the record ({n * dt_s:.1f} s) needs rows before "
+                         f"it to fit on and rows from it on to judge")
     return cut
 
 

@@ -15,9 +15,9 @@ from ..persistence import save_model
 from .candidates import CANDIDATES, DEAD_ZONE_TOL_V
 from .results import Diagnosis, Outcome
 
-METRIC = ("free-run RMSE (mm) on the held-out last {held:.0f} % of the record (of each record, "
-          "when several are diagnosed), the model run from the record's start on its input "
-          "alone")
+METRIC = ("free-run RMSE (mm) on the held-out part of the record (of each record, when "
+          "several are diagnosed): its last {held:.0f} %, or the last copies of the probes of "
+          "the experiment it played; the model run from the record's start on its input alone")
 
 RULE = ("An effect is accepted when the current model with its block, fitted on the same fit "
         "rows as the current model, has less squared free-run error on the held-out rows "
@@ -218,9 +218,12 @@ def _experiment_lines(x) -> list[str]:
              f"`next_experiment.json` ({x.duration_s:.0f} s at {x.rate_hz:.4g} Hz, |u| <= "
              f"{float(np.max(np.abs(x.u_v))):.2f} V) decides {', '.join(x.decides)}; its last "
              f"{100 * (1 - x.fit_share):.0f} % is the held-out part. Record it and diagnose "
-             "that record:", "", "| part | from (s) | length (s) | why |", "|---|---|---|---|"]
-    lines += [f"| {p.name} | {p.start_s:.1f} | {p.duration_s:.1f} | {p.reason} |"
-              for p in x.parts]
+             "that record with `--experiment next_experiment.json` (a bag that `ipmc bringup "
+             "--experiment` recorded carries it), so that it is split where its held-out part "
+             "starts:", "", "| part | from (s) | length (s) | held out | why |",
+             "|---|---|---|---|---|"]
+    lines += [f"| {p.name} | {p.start_s:.1f} | {p.duration_s:.1f} | "
+              f"{'yes' if p.held_out else '-'} | {p.reason} |" for p in x.parts]
     return lines + [""]
 
 
