@@ -11,18 +11,18 @@ effect on exactly the excitation that shows it, and the fit part has seen that e
 too (the judged rows stay within its range).
 
 Layout: ``[wipe] [end probes] [base] [wipe] [probes] [wipe] | [probes] [wipe] [end
-probes]``: the
-held-out part is the probes' last copies, marked ``held_out`` in the parts, and a record that
-comes with the parts is split where they start (``fit_share`` is that point's share of the
-whole). The base, the identification input, covers the record's range; the probes of the fit
-part excite the core as well, at the levels they are judged at. The wipe, a slow sine whose
-amplitude falls to 0 V, erases the memory of the path (each reversal smaller than the last)
-before each copy of the probes: both copies start from the same state, so a steady actuator
-bends alike in both, and so does the core model (after different inputs the simulated
-IPMC's two copies differed by 0.06-0.16 mm RMS, the core's by 0.09-0.29 mm: a history misfit
-differently in each, which a drift or a slow creep could take up). An end probe (a drift's)
-opens and closes the experiment: what the same input bends differently at the two ends is
-what changed over the record.
+probes]``: the held-out part is the probes' last copies, marked ``held_out`` in the parts, and
+a record that comes with the parts is split where they start (``fit_share`` is that point's
+share of the whole). The base, the identification input, covers the record's range; the
+probes of the fit part excite the core as well, at the levels they are judged at. The wipe,
+a slow sine whose amplitude falls to 0 V, erases the memory of the path (each reversal
+smaller than the last) before each copy of the probes: both copies start from the same
+state, so a steady actuator bends alike in both, and so does the core model. After different
+inputs, or after a rest (which keeps the core's plays and path memory where the input left
+them), the copies differ by tenths of a millimetre: a history the core misfits differently in
+each, which a drift or a slow creep could take up. An end probe (a drift's) opens and closes
+the experiment: what the same input bends differently at the two ends is what changed over
+the record.
 """
 
 from __future__ import annotations
@@ -53,10 +53,10 @@ BASE_S = 60.0
 #: The memory wipe's period (s): far slower than the charging (IPMC corners 0.5-1.5 Hz), so
 #: the charge, where the memory is, follows the sine.
 WIPE_PERIOD_S = 5.0
-#: The wipe's travel (V): 1.8 times the longest path memory of the core model (32 V), as 12
-#: periods from 2.4 V travel; the core's two copies of the probes then differ by about the
-#: sensor's noise (the test of this module: under 0.01 mm RMS on the simulated IPMC), which
-#: cannot show as an effect. Lower levels take more periods.
+#: The wipe's travel (V): 1.8 times the longest path memory of the core model (32 V); 12
+#: periods from 2.4 V travel it. The core's two copies of the probes then differ by about the
+#: sensor's noise (the module's test: under 0.01 mm RMS on the simulated IPMC), which cannot
+#: show as an effect. Lower levels take more periods.
 WIPE_TRAVEL_V = 1.8 * max(DEFAULT_PATH_MEMORY_V)
 
 
