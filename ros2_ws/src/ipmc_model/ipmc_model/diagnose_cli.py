@@ -109,12 +109,19 @@ def main(argv: list[str] | None = None) -> int:
             _progress(f"{path}: {len(rec)} samples at {rec.rate_hz:.4g} Hz")
             records.append((str(path), rec.t_s, rec.u_v, rec.y_mm))
         for i, rec in enumerate(records):
-            played = experiment_of(args.data[i], args.experiment if i == len(records) - 1
-                                   else None)
+            given = args.experiment if i == len(records) - 1 else None
+            played = experiment_of(args.data[i], given)
+            try:
+                records[i] = (*rec, _played(played, rec)) if played else rec
+            except ValueError as exc:
+                if given:
+                    raise
+                # a bag whose recording stopped early (Ctrl-C): a record of part of it
+                _progress(f"{exc}; split at the share, as a record of another input")
+                continue
             if played:
                 _progress(f"{args.data[i]}: played {played}; split where its held-out part "
                           f"starts")
-                records[i] = (*rec, _played(played, rec))
         d = diagnose_records(records, model=model, candidates=args.effects,
                              progress=_progress, jobs=args.jobs)
         summary = write_report(d, args.report, data_label=", ".join(map(str, args.data)))
