@@ -922,8 +922,7 @@ class RateDependence(Candidate):
         # passed on what the refit moved in the rest of the model, not on a rate dependence
         v = after._charge(rec.u_v, after._theta)
         bend = after.output_coef_[0] * after._charging_current(v)[rec.judged_for(self.name)]
-        ms, margin = float(np.mean(bend ** 2)), rec.config.material_noise_share * \
-            rec.excitation.noise_floor_mm ** 2
+        ms, margin = float(np.mean(bend ** 2)), rec.margin_mm2
         if ms >= margin:
             return None
         return Refined({"gain_mm_per_v_per_s": float(after.output_coef_[0])}, outside=(

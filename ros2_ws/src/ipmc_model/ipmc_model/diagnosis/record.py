@@ -238,6 +238,11 @@ class DiagnosisRecord:
         judged = self.held_rows & ~recent
         return judged if judged.sum() >= 0.5 * self.held_rows.sum() else self.held_rows.copy()
 
+    @property
+    def margin_mm2(self) -> float:
+        """The materiality margin (mm^2): ``material_noise_share`` x the noise floor squared."""
+        return self.config.material_noise_share * self.excitation.noise_floor_mm ** 2
+
     def power_share_above(self, f_hz: float) -> float:
         """Share of the fit parts' input power (each part's mean removed) above ``f_hz``."""
         above = total = 0.0

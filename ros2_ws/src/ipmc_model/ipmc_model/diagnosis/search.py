@@ -144,7 +144,7 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
     """One round: every candidate in ``names`` fitted around ``current`` and judged."""
     cfg = rec.config
     y_cur = current.simulate(rec.u_v)
-    margin = cfg.material_noise_share * rec.excitation.noise_floor_mm ** 2
+    margin = rec.margin_mm2
     r_fit = fit_residual(current, rec)
     sse_fit, n_eff = float(r_fit @ r_fit), effective_samples(r_fit)
     results, tested, untestable = {}, {}, {}
