@@ -970,34 +970,23 @@ def test_an_accepted_creep_whose_time_constant_is_left_open_gets_deciding_holds(
     assert probe.duration_s >= len(HOLD_LEVELS) * HOLD_TAUS * 28.0 - 1e-6
 
 
-def test_a_drift_accepted_on_a_moving_input_gets_its_probe_to_confirm_it():
+def test_a_drift_on_a_moving_input_is_not_testable_and_its_probe_is_proposed():
     """On an input that never holds still, a misfit of the path memory trends as a drift
-    would: an accepted drift there asks for its probe (the same levels held at the two ends);
-    on a record with holds in both parts it does not."""
-    from ipmc_model.diagnosis import design_experiment
-    from ipmc_model.diagnosis.results import CandidateResult, Diagnosis, Evidence, LossTest, Round
-
-    cfg = DiagnosisConfig()
-
-    def proposal(holds: bool):
-        data = plant_record({}, 120.0, 1, holds=holds)
-        rec = DiagnosisRecord(data.t_s, data.u_v, data.y_mm, cfg)
-        model = core_model(rec)
-        ev = Evidence(0.05, 0.03, LossTest(1e-3, 3.0, 0.001, 10, 1e-5),
-                      {"gain_change_per_min": -0.01, "offset_mm_per_min": 0.02})
-        res = CandidateResult("drift", Outcome.ACCEPTED, "accepted", 1, ev)
-        d = Diagnosis(rec.t_s, rec.u_v, rec.y_mm, rec.held_rows, rec.segments, cfg, False,
-                      model, model, rounds=[Round(1, 0.05, (res,), "drift")])
-        return design_experiment(d, rec)
-
-    assert proposal(holds=True) is None
-    x = proposal(holds=False)
-    assert x.decides == ["drift"]
+    would: there a drift is not testable, and the next experiment plays its probe (the same
+    levels held at the two ends); on a record with holds in both parts it is judged."""
+    fading = {"drift": {"gain_loss_per_min": 0.05, "offset_mm_per_min": 0.15}}
+    moving = diagnose(plant_record(fading, 120.0, 1), candidates=["drift"])
+    drift = next(r for r in moving.candidates if r.name == "drift")
+    assert drift.outcome is Outcome.NOT_TESTABLE and "0 input holds" in drift.reason
+    assert moving.effects_found == [] and moving.next_experiment.decides == ["drift"]
+    x = moving.next_experiment
     ends = [p for p in x.parts if p.effect == "drift"]
     assert len(ends) == 2 and x.parts[0].name == "memory wipe"   # each copy after a wipe
     assert ends[0].start_s == pytest.approx(x.parts[0].duration_s)
     assert ends[-1].start_s + ends[-1].duration_s == pytest.approx(x.duration_s)
-    assert "accepted on a moving input" in ends[0].reason
+    held = diagnose(plant_record(fading, 120.0, 1, holds=True), candidates=["drift"])
+    assert next(r for r in held.candidates if r.name == "drift").outcome is not \
+        Outcome.NOT_TESTABLE
 
 
 def test_a_creep_the_record_does_not_bound_or_size_is_outside_its_range():

@@ -719,13 +719,13 @@ class Drift(Candidate):
                      f"moves where 0 V rests (its offset); the actuator's memory of the path "
                      f"does not", ends=True)
 
-    def poorly_determined(self, result, rec):
+    def not_testable(self, rec, model, given):
         few = too_few_holds(rec)
         if few is None:
             return None
-        return (f"accepted on a moving input ({few}): a trend in the error is also what a "
-                f"misfit of the memory of a path that never repeats leaves; the same levels "
-                f"held at the start and the end tell the two apart")
+        return (f"{few}: on a moving input a trend in the error is also what a misfit of the "
+                f"memory of a path that never repeats leaves; record the same levels held at "
+                f"the start and the end (its probe)")
 
     def refit(self, model, rec):
         # the two rates fitted jointly with the rest
