@@ -246,8 +246,7 @@ def experiment_input(experiment, out_dir: Path, after_round: int) -> PlannedInpu
 # -- the loop -------------------------------------------------------------------------------
 def settled(rounds) -> set[str]:
     """Effects a round judged on a record that could show them (accepted or rejected) and
-    did not ask to probe again (an accepted creep whose time constant was left open does, and
-    a drift accepted on a moving input)."""
+    did not ask to probe again (an accepted creep whose time constant was left open does)."""
     out = set()
     for rnd in rounds:
         asked = set(rnd.verdicts.undecided())

@@ -1,14 +1,13 @@
 """The next experiment: an excitation designed to decide what a record could not.
 
-When the record cannot test a candidate (creep without input holds, a delay without steps, a
-dead zone without slow crossings of 0 V), or an accepted effect's parameters are left open
-by it (a creep whose time constant's interval runs to the longest the record can show; a
-drift accepted on a moving input, where a misfit of the path memory trends as well), the
-candidate's class proposes a probe: the short input that shows its effect. The experiment
-plays the probes after an identification input that covers the record's range, and then
-plays them again as the held-out part, so that the diagnosis of the new record judges each
-effect on exactly the excitation that shows it, and the fit part has seen that excitation
-too (the judged rows stay within its range).
+When the record cannot test a candidate (creep or drift without input holds, a delay without
+steps, a dead zone without slow crossings of 0 V), or an accepted effect's parameters are
+left open by it (a creep whose time constant's interval runs to the longest the record can
+show), the candidate's class proposes a probe: the short input that shows its effect. The
+experiment plays the probes after an identification input that covers the record's range,
+and then plays them again as the held-out part, so that the diagnosis of the new record
+judges each effect on exactly the excitation that shows it, and the fit part has seen that
+excitation too (the judged rows stay within its range).
 
 Layout: ``[wipe] [end probes] [base] [wipe] [probes] [wipe] | [probes] [wipe] [end
 probes]``: the held-out part is the probes' last copies, marked ``held_out`` in the parts, and
