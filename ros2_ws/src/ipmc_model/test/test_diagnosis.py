@@ -660,6 +660,9 @@ def test_cli_writes_the_report_and_a_model_that_runs(tmp_path, capsys):
     held_s = min(p["start_s"] for p in x["parts"] if p["held_out"])
     assert "creep" in x["decides"] and x["fit_share"] == pytest.approx(held_s / x["duration_s"])
     assert max(abs(v) for v in x["u_v"]) <= 3.0 and "## The next experiment" in report
+    # a drift needs holds too; the creep's, played in both copies, decide it without its own
+    assert "drift" in x["decides"] and all(p["effect"] != "drift" for p in x["parts"])
+    assert all("also decides drift" in p["reason"] for p in x["parts"] if p["effect"] == "creep")
 
 
 def test_cli_refuses_a_report_path_that_is_a_file_before_any_work(tmp_path, capsys):

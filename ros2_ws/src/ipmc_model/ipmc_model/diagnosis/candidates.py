@@ -312,7 +312,8 @@ class Creep(Candidate):
                      f"{len(HOLD_LEVELS)} holds of {hold_s:.0f} s ({HOLD_TAUS:g} x the creep's "
                      f"time constant {tau:.3g} s) at +-{a:.2f} and +-{a / 2:.2f} V: a "
                      f"relaxation settles while the input holds still, the path memory does "
-                     f"not move")
+                     f"not move",
+                     also=("drift",))   # in both copies: the same levels held at two times
 
     def poorly_determined(self, result, rec):
         p = result.evidence.params if result.evidence is not None else {}

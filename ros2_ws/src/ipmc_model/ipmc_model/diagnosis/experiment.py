@@ -68,6 +68,9 @@ class Probe:
     reason: str
     #: Played at the experiment's start as well as in its held-out part, which it closes.
     ends: bool = False
+    #: Effects whose own probe this one makes unnecessary: played in both copies, it already
+    #: gives them the excitation they need (a creep's holds: the same levels at two times).
+    also: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -90,6 +93,9 @@ class Experiment:
     fit_share: float
     u_v: np.ndarray
     parts: tuple[ExperimentPart, ...]
+    #: Effects decided by other effects' probes (:attr:`Probe.also`), without a part of their
+    #: own: judged on every held-out row.
+    also_decides: tuple[str, ...] = ()
 
     @property
     def duration_s(self) -> float:
@@ -97,7 +103,7 @@ class Experiment:
 
     @property
     def decides(self) -> list[str]:
-        return sorted({p.effect for p in self.parts if p.effect})
+        return sorted({p.effect for p in self.parts if p.effect} | set(self.also_decides))
 
     def as_dict(self) -> dict:
         return {"format": EXPERIMENT_FORMAT, "format_version": EXPERIMENT_FORMAT_VERSION,
@@ -132,7 +138,17 @@ def design_experiment(d: Diagnosis, rec: DiagnosisRecord) -> Experiment | None:
                                                                           f"{probe.reason}"))
     if not probes:
         return None
-    return assemble(probes, rec, seed=0)
+    # a probe another one makes unnecessary adds time and decides nothing more
+    proposed = {p.effect for p in probes}
+    kept = []
+    for p in probes:
+        also = [e for e in p.also if e in proposed]
+        if any(p.effect in q.also for q in probes):
+            continue
+        kept.append(p if not also else replace(
+            p, reason=f"{p.reason}; played in both copies, it also decides {', '.join(also)}"))
+    covered = tuple(sorted(proposed - {p.effect for p in kept}))
+    return replace(assemble(kept, rec, seed=0), also_decides=covered)
 
 
 def assemble(probes: list[Probe], rec: DiagnosisRecord, seed: int = 0) -> Experiment:
