@@ -5,9 +5,9 @@
 
 Round 1 plays a first excitation, records it and diagnoses the record (``ipmc diagnose``'s
 procedure). When the diagnosis leaves an effect undecided for lack of the input that shows it
-(creep without input holds, a delay without steps, a dead zone without slow crossings of 0 V)
-or accepts one the record cannot pin down (a creep's time constant left open, a drift on a
-moving input), it proposes the experiment that decides it; the next round plays that
+(creep or drift without input holds, a delay without steps, a dead zone without slow crossings
+of 0 V) or accepts one the record cannot pin down (a creep's time constant left open), it
+proposes the experiment that decides it; the next round plays that
 experiment, records it and diagnoses it; and so on until nothing is undecided, an experiment
 left its effects as undecided as before, the next experiment would decide only effects that
 an earlier record able to show them decided, or it would overrun the budget of recorded

@@ -272,11 +272,14 @@ def clean_twin_rmse_mm(round_dir: Path) -> float:
 @pytest.mark.timeout(240)
 def test_creep_hidden_by_a_random_sine_is_named_after_the_proposed_experiment(creep_run):
     first, second = creep_run["rounds"]
-    assert first["left_undecided"] == ["creep"]
+    # neither a creep nor a drift shows on a moving input; the creep's holds decide both
+    assert first["left_undecided"] == ["creep", "drift"]
     assert "0 input holds" in first["reasons"]["creep"]
     probes = [p for p in second["experiment"]["parts"] if p["effect"] == "creep"]
     assert len(probes) == 2 and all("holds of" in p["reason"] for p in probes)
-    assert second["undecided"] == ["creep"] and second["decided"]["creep"] == "accepted"
+    assert all(p["effect"] != "drift" for p in second["experiment"]["parts"])
+    assert second["undecided"] == ["creep", "drift"] and second["decided"]["creep"] == "accepted"
+    assert second["decided"]["drift"] == "rejected"
     assert creep_run["effects_found"] == ["creep"] and creep_run["undecided"] == []
     creep = second["params"]["creep"]   # the plant's creep: 20 s, -0.12 mm per V of charge
     lo, hi = creep["tau_ci_s"]

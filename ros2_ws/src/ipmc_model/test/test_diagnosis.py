@@ -662,7 +662,8 @@ def test_cli_writes_the_report_and_a_model_that_runs(tmp_path, capsys):
     assert max(abs(v) for v in x["u_v"]) <= 3.0 and "## The next experiment" in report
     # a drift needs holds too; the creep's, played in both copies, decide it without its own
     assert "drift" in x["decides"] and all(p["effect"] != "drift" for p in x["parts"])
-    assert all("also decides drift" in p["reason"] for p in x["parts"] if p["effect"] == "creep")
+    assert all("also decides drift" in p["reason"] and p["also"] == ["drift"]
+               for p in x["parts"] if p["effect"] == "creep")
 
 
 def test_cli_refuses_a_report_path_that_is_a_file_before_any_work(tmp_path, capsys):
@@ -990,6 +991,38 @@ def test_a_drift_on_a_moving_input_is_not_testable_and_its_probe_is_proposed():
     held = diagnose(plant_record(fading, 120.0, 1, holds=True), candidates=["drift"])
     assert next(r for r in held.candidates if r.name == "drift").outcome is not \
         Outcome.NOT_TESTABLE
+    assert held.next_experiment is None or "drift" not in held.next_experiment.decides
+
+
+def test_a_probe_that_gives_another_effect_its_excitation_replaces_that_ones_probe():
+    """A probe naming an effect the record lacked the excitation for stands in for that
+    effect's probe, which is left out, and the effect is judged on its held-out copy; one
+    undecided for too few rows keeps its own; a probe that is itself left out covers
+    nothing (a chain), and two naming each other both stay (a cycle)."""
+    from ipmc_model.diagnosis.experiment import Probe, assemble, covering
+
+    def probe(effect, *also, level=1.0):
+        return Probe(effect, np.full(int(10 * RATE), level), f"{effect} input", also=also)
+
+    a, b, c = probe("creep", "drift"), probe("drift", level=-1.0), probe("delay", level=0.5)
+    kept = covering([a, b, c], lacking={"drift"})
+    assert [p.effect for p in kept] == ["creep", "delay"]
+    assert kept[0].also == ("drift",) and kept[0].reason.endswith("it also decides drift")
+    assert [p.effect for p in covering([a, b], lacking=set())] == ["creep", "drift"]
+    chain = covering([probe("x", "y"), probe("y", "z"), probe("z")], lacking={"y", "z"})
+    assert [p.effect for p in chain] == ["x", "z"] and chain[0].also == ("y",)
+    cycle = covering([probe("x", "y"), probe("y", "x")], lacking={"x", "y"})
+    assert [(p.effect, p.also) for p in cycle] == [("x", ()), ("y", ())]
+    # the covered effect is judged on the covering probe's held-out copy
+    data = plant_record({}, 120.0, 1)
+    rec = DiagnosisRecord(data.t_s, data.u_v, data.y_mm, DiagnosisConfig())
+    x = assemble(kept, rec)
+    assert x.decides == ["creep", "delay", "drift"]
+    run = IpmcPlant(seed=2, dt_s=1 / RATE).run(x.u_v)
+    rec2 = DiagnosisRecord(run.t_s, x.u_v, run.y_mm, DiagnosisConfig(), parts=x.parts)
+    assert np.array_equal(rec2.judged_for("drift"), rec2.judged_for("creep"))
+    assert rec2.judged_for("drift").any() and not (rec2.judged_for("drift")
+                                                   & rec2.judged_for("delay")).any()
 
 
 def test_a_creep_the_record_does_not_bound_or_size_is_outside_its_range():

@@ -87,8 +87,7 @@ class Candidate:
 
     def poorly_determined(self, result, rec: DiagnosisRecord) -> str | None:
         """Why an accepted effect is not pinned down by the record (a 95 % interval the
-        record leaves open, or an excitation that another effect could explain as well), so
-        that the probe is worth recording; None if it is."""
+        record leaves open), so that the probe is worth recording; None if it is."""
         return None
 
     def refit(self, model: GeneralizedPI, rec: DiagnosisRecord) -> Fitted | str:

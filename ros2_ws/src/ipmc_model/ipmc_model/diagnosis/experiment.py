@@ -68,8 +68,9 @@ class Probe:
     reason: str
     #: Played at the experiment's start as well as in its held-out part, which it closes.
     ends: bool = False
-    #: Effects whose own probe this one makes unnecessary: played in both copies, it already
-    #: gives them the excitation they need (a creep's holds: the same levels at two times).
+    #: Effects whose own probe this one makes unnecessary when the record lacked the
+    #: excitation they need: played in both copies, it gives it (a creep's holds are the same
+    #: levels at two times, what tells a drift from the memory of the path).
     also: tuple[str, ...] = ()
 
 
@@ -83,6 +84,8 @@ class ExperimentPart:
     #: Part of the held-out part (a probe's last copy); the record is split where the first
     #: such part starts.
     held_out: bool = False
+    #: Effects judged on this probe too (:attr:`Probe.also`): their own probe was left out.
+    also: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -93,9 +96,6 @@ class Experiment:
     fit_share: float
     u_v: np.ndarray
     parts: tuple[ExperimentPart, ...]
-    #: Effects decided by other effects' probes (:attr:`Probe.also`), without a part of their
-    #: own: judged on every held-out row.
-    also_decides: tuple[str, ...] = ()
 
     @property
     def duration_s(self) -> float:
@@ -103,14 +103,14 @@ class Experiment:
 
     @property
     def decides(self) -> list[str]:
-        return sorted({p.effect for p in self.parts if p.effect} | set(self.also_decides))
+        return sorted({e for p in self.parts for e in (p.effect, *p.also) if e})
 
     def as_dict(self) -> dict:
         return {"format": EXPERIMENT_FORMAT, "format_version": EXPERIMENT_FORMAT_VERSION,
                 "rate_hz": self.rate_hz, "fit_share": self.fit_share,
                 "u_max_v": ACTUATOR_LIMIT_V, "duration_s": self.duration_s,
                 "decides": self.decides,
-                "parts": [vars(p) for p in self.parts],
+                "parts": [{**vars(p), "also": list(p.also)} for p in self.parts],
                 "u_v": [round(float(v), 4) for v in self.u_v]}
 
 
@@ -123,32 +123,43 @@ def probe_level_v(rec: DiagnosisRecord) -> float:
 def design_experiment(d: Diagnosis, rec: DiagnosisRecord) -> Experiment | None:
     """The experiment that decides the diagnosis's not-testable candidates and pins down the
     accepted ones the record left open; None if none of them has a probe
-    (the ones that need a given model instead of a record)."""
+    (the ones that need a given model instead of a record). A probe another one makes
+    unnecessary (:func:`covering`) is left out."""
     from .candidates import CANDIDATES
 
-    probes = []
+    probes, lacking = [], set()
     for res in d.candidates:
         cand = CANDIDATES.get(res.name)
         why = (cand.poorly_determined(res, rec) if cand is not None and res.accepted else None)
         if cand is None or not (res.outcome is Outcome.NOT_TESTABLE or why):
             continue
         probe = cand.probe(rec, d.model_before, res)
-        if probe is not None:
-            probes.append(probe if why is None else replace(probe, reason=f"{why}; "
-                                                                          f"{probe.reason}"))
-    if not probes:
-        return None
-    # a probe another one makes unnecessary adds time and decides nothing more
-    proposed = {p.effect for p in probes}
+        if probe is None:
+            continue
+        probes.append(probe if why is None else replace(probe, reason=f"{why}; "
+                                                                      f"{probe.reason}"))
+        if cand.not_testable(rec, d.model_before, d.given_model) is not None:
+            lacking.add(res.name)
+    return assemble(covering(probes, lacking), rec, seed=0) if probes else None
+
+
+def covering(probes: list[Probe], lacking: set[str]) -> list[Probe]:
+    """``probes`` without those another one makes unnecessary: an effect the record lacked
+    the excitation for (``lacking``; one undecided for too few rows or left open needs its
+    own probe's lever) is covered by a probe naming it in :attr:`Probe.also` that is itself
+    not covered; the covering probe says so and is judged for it too."""
+    named = {e for p in probes for e in p.also if e != p.effect}
+    own = {p.effect for p in probes}
     kept = []
     for p in probes:
-        also = [e for e in p.also if e in proposed]
-        if any(p.effect in q.also for q in probes):
+        if p.effect in lacking and any(p.effect in q.also and q.effect not in named
+                                       for q in probes if q is not p):
             continue
-        kept.append(p if not also else replace(
-            p, reason=f"{p.reason}; played in both copies, it also decides {', '.join(also)}"))
-    covered = tuple(sorted(proposed - {p.effect for p in kept}))
-    return replace(assemble(kept, rec, seed=0), also_decides=covered)
+        also = () if p.effect in named else tuple(
+            e for e in p.also if e in own and e in lacking and e != p.effect)
+        kept.append(replace(p, also=also, reason=p.reason + (
+            f"; played in both copies, it also decides {', '.join(also)}" if also else "")))
+    return kept
 
 
 def assemble(probes: list[Probe], rec: DiagnosisRecord, seed: int = 0) -> Experiment:
@@ -164,7 +175,8 @@ def assemble(probes: list[Probe], rec: DiagnosisRecord, seed: int = 0) -> Experi
     inner, ends = [p for p in probes if not p.ends], [p for p in probes if p.ends]
 
     def copies(group: list[Probe], held: bool, where: str) -> list[tuple]:
-        return [(f"{p.effect} probe{where}", p.effect, p.u_v, p.reason, held) for p in group]
+        return [(f"{p.effect} probe{where}", p.effect, p.u_v, p.reason, held, p.also)
+                for p in group]
 
     # at the start too: an actuator at rest keeps the memory of how it got there
     pieces = [clear, *copies(ends, False, ", at the start")] if ends else []
@@ -177,8 +189,9 @@ def assemble(probes: list[Probe], rec: DiagnosisRecord, seed: int = 0) -> Experi
         pieces.append(clear)
     pieces += copies(ends, True, ", repeated as the held-out part")
     parts, start = [], 0
-    for name, effect, u, reason, held in pieces:
-        parts.append(ExperimentPart(name, effect, start / rate, u.size / rate, reason, held))
+    for name, effect, u, reason, held, *also in pieces:
+        parts.append(ExperimentPart(name, effect, start / rate, u.size / rate, reason, held,
+                                    *also))
         start += u.size
     u_all = np.clip(np.concatenate([piece[2] for piece in pieces]), -ACTUATOR_LIMIT_V,
                     ACTUATOR_LIMIT_V)
@@ -209,7 +222,8 @@ def read_experiment(path) -> tuple[tuple[ExperimentPart, ...], np.ndarray, float
         # format 1 had no held-out flag: its records split by the diagnosis's share
         parts = tuple(ExperimentPart(str(p["name"]), str(p["effect"]), float(p["start_s"]),
                                      float(p["duration_s"]), str(p["reason"]),
-                                     _flag(p, "held_out", required=version >= 2))
+                                     _flag(p, "held_out", required=version >= 2),
+                                     tuple(str(e) for e in p.get("also", ())))
                       for p in doc["parts"])
         return parts, np.asarray(doc["u_v"], dtype=float).reshape(-1), float(doc["rate_hz"])
     except (KeyError, TypeError, ValueError) as exc:

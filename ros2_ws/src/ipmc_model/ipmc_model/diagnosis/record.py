@@ -10,8 +10,8 @@ through it.
 
 A record played from a proposed experiment (``next_experiment.json``) may come with the
 experiment's parts: it is then split where they mark the held-out part (the probes' last
-copies, one per effect), and an effect with a probe there is judged on that probe's rows
-alone (:meth:`DiagnosisRecord.judged_for`). The other probes show other effects: a block's
+copies), and an effect with a probe there (its own, or one that decides it too) is judged on
+that probe's rows alone (:meth:`DiagnosisRecord.judged_for`). The other probes show other effects: a block's
 error on them measures how the refit moved the rest of the model, not the effect.
 """
 
@@ -191,7 +191,8 @@ class DiagnosisRecord:
         return self.probe_rows.get(effect, self.judged)
 
     def _probe_rows(self, parts_per_record) -> dict[str, np.ndarray]:
-        """Effect -> the judged rows of the held-out probes designed for it."""
+        """Effect -> the judged rows of the held-out probes designed for it (or that decide it
+        too, :attr:`ExperimentPart.also`)."""
         out: dict[str, np.ndarray] = {}
         for seg, parts in zip(self.segments, parts_per_record, strict=True):
             for p in parts:
@@ -199,7 +200,8 @@ class DiagnosisRecord:
                 b = min(seg.stop, a + int(round(p.duration_s / self.dt_s)))
                 if not p.effect or a < seg.cut:
                     continue
-                out.setdefault(p.effect, np.zeros(self.u_v.size, dtype=bool))[a:b] = True
+                for effect in (p.effect, *p.also):
+                    out.setdefault(effect, np.zeros(self.u_v.size, dtype=bool))[a:b] = True
         return {k: v & self.judged for k, v in out.items() if (v & self.judged).any()}
 
     # -- what the excitation can show ------------------------------------------------------
