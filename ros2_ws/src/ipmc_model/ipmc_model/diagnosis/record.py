@@ -11,8 +11,9 @@ through it.
 A record played from a proposed experiment (``next_experiment.json``) may come with the
 experiment's parts: it is then split where they mark the held-out part (the probes' last
 copies), and an effect with a probe there (its own, or one that decides it too) is judged on
-that probe's rows alone (:meth:`DiagnosisRecord.judged_for`). The other probes show other effects: a block's
-error on them measures how the refit moved the rest of the model, not the effect.
+that probe's rows alone (:meth:`DiagnosisRecord.judged_for`). The other probes show other
+effects: a block's error on them measures how the refit moved the rest of the model, not the
+effect.
 """
 
 from __future__ import annotations
