@@ -313,7 +313,11 @@ class GeneralizedPI:
     play_channels : int
         Plays act on the charge and the ``play_channels - 1`` fastest relaxations.
     threshold_shares : sequence of float
-        Play thresholds as shares of max |u| of the identification record.
+        Play thresholds as shares of max |u| of the identification record (of half each
+        play channel's swing with ``channel_thresholds``).
+    channel_thresholds : bool
+        Each play channel's thresholds from its own swing on the identification record
+        (:meth:`_play_thresholds`) instead of all from max |u|.
     n_knots : int
         Hinges of the output map.
     rate_limit : bool
@@ -387,7 +391,8 @@ class GeneralizedPI:
                  path_memory_v=DEFAULT_PATH_MEMORY_V, output_taus_s=(),
                  direction_memory_v=DEFAULT_DIRECTION_MEMORY_V, direction_channels: int = 3,
                  start_tau_factors=INITIAL_TAU_FACTORS, warm_start: bool = False,
-                 output_rate: bool = False, progress=None):
+                 output_rate: bool = False, channel_thresholds: bool = False,
+                 progress=None):
         self.memory_taus_s = tuple(float(t) for t in memory_taus_s)
         self.play_channels = play_channels
         self.threshold_shares = tuple(float(s) for s in threshold_shares)
@@ -410,6 +415,7 @@ class GeneralizedPI:
         self.start_tau_factors = tuple(float(f) for f in start_tau_factors)
         self.warm_start = bool(warm_start)
         self.output_rate = bool(output_rate)
+        self.channel_thresholds = bool(channel_thresholds)
         self.progress = progress
         self.weights_ = None
         self.map_range_ = (-math.inf, math.inf)
@@ -539,8 +545,7 @@ class GeneralizedPI:
         self.memory_taus_s_ = tuple(t for t in self.memory_taus_s
                                     if t * MIN_SPANS_PER_TAU <= span_s and t > self.dt_s)
         n_play = min(int(self.play_channels), 1 + len(self.memory_taus_s_))
-        self.thresholds_ = np.tile(np.array(self.threshold_shares) * float(np.max(np.abs(u))),
-                                   (n_play, 1))
+        self.thresholds_ = self._play_thresholds(u, n_play)
         # a delay is a candidate when the linear part prefers one; the whole model's blocked
         # free-run CV decides (a charging lag also looks like a delay to a linear model)
         if self.delay_s is None:
@@ -558,6 +563,22 @@ class GeneralizedPI:
         self._learned_on(u, y)
         self.fit_seconds_ = time.perf_counter() - t0
         return self
+
+    def _play_thresholds(self, u: np.ndarray, n_play: int) -> np.ndarray:
+        """The plays' thresholds, (n_play, shares): ``threshold_shares`` of max |u| on every
+        channel, or with ``channel_thresholds`` of half each channel's swing (the input
+        through the dead zone, and its relaxations). A play reverses only where its channel
+        travels more than twice its threshold; a slower channel swings less, and its plays
+        above half the swing move once and stay: a step in time whose weight no loop fixes,
+        which takes up a slow trend of the record and moves again (far off) where a run drives
+        beyond the record's range."""
+        shares = np.array(self.threshold_shares)
+        if not self.channel_thresholds:
+            return np.tile(shares * float(np.max(np.abs(u))), (n_play, 1))
+        v = dead_zone(u, self.dead_zone_v)
+        relax, _ = lowpass_bank(v, self.memory_taus_s_[:n_play - 1], self.dt_s)
+        half_swing = 0.5 * np.ptp(np.column_stack([v, relax])[:, :n_play], axis=0)
+        return half_swing[:, None] * shares[None, :]
 
     def _fit_on(self, u, y, span_s: float, t0: float) -> GeneralizedPI:
         """Warm start: the continuous parameters fitted on from the learned ones, the ridge
@@ -845,7 +866,8 @@ class GeneralizedPI:
                 "direction_memory_v": list(self.direction_memory_v),
                 "direction_channels": self.direction_channels,
                 "start_tau_factors": list(self.start_tau_factors),
-                "warm_start": self.warm_start, "output_rate": self.output_rate}
+                "warm_start": self.warm_start, "output_rate": self.output_rate,
+                "channel_thresholds": self.channel_thresholds}
 
 
 class GpiStepper:

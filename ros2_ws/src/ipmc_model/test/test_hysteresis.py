@@ -396,3 +396,30 @@ def test_rows_not_measured_are_run_through_and_left_out_of_the_fit():
     assert with_nan.train_rmse_ == pytest.approx(e_nan, rel=1e-9)
     with pytest.raises(ValueError, match="NaN"):
         GeneralizedPI(**kw).fit(u, np.where(clean_rows, y, np.inf))
+
+
+def test_channel_thresholds_let_every_play_reverse_and_survive_the_file(tmp_path):
+    """With ``channel_thresholds`` each play channel's thresholds follow its own swing, so every
+    play reverses on the record it was fitted on; with max |u| on every channel the slow
+    channel's upper plays only move once (a step in time). Kept by the model file and by a
+    refit from its hyperparameters (``--effects-from``)."""
+    from ipmc_model.hysteresis import lowpass_bank, play_bank
+
+    _, u = mixed(120.0, 50.0, 3.0, band_hz=(0.02, 0.8), seed=4)
+    y = IpmcPlant(seed=4, dt_s=0.02).run(u).y_mm
+    kw = dict(dt_s=0.02, memory_taus_s=(0.05, 0.45, 4.0), max_nfev=8)
+    m = GeneralizedPI(channel_thresholds=True, **kw).fit(u[:4000], y[:4000])
+    default = GeneralizedPI(**kw).fit(u[:4000], y[:4000])
+    ch = np.column_stack([u[:4000], lowpass_bank(u[:4000], m.memory_taus_s_, 0.02)[0]])
+
+    def reversing(thresholds):
+        d = np.diff(play_bank(ch[:, :thresholds.shape[0]], thresholds)[0], axis=0)
+        return (d > 1e-12).any(axis=0) & (d < -1e-12).any(axis=0)
+
+    assert reversing(m.thresholds_).all()
+    assert not reversing(default.thresholds_).all()
+    assert m.thresholds_[-1, -1] < 0.5 * m.thresholds_[0, -1]   # the 4 s channel swings less
+    loaded = load_model(save_model(m, tmp_path / "m.json"))
+    assert loaded.channel_thresholds and np.allclose(loaded.simulate(u), m.simulate(u))
+    again = GeneralizedPI(**loaded.get_params()).fit(u[:4000], y[:4000])
+    assert np.allclose(again.thresholds_, m.thresholds_)
