@@ -365,10 +365,10 @@ def test_a_diagnosis_on_two_workers_is_the_one_in_process():
 
 
 def test_a_creep_the_held_out_rows_are_too_few_to_decide_is_undecided_with_its_probe():
-    """A 20 s creep of -0.2 mm/V on 3-10 s holds: the fit rows support the block, but 72 s
+    """A 20 s creep of -0.1 mm/V on 3-10 s holds: the fit rows support the block, but 72 s
     of held-out rows cannot make the test pass at the gain they show; undecided, not
     rejected, and the next experiment holds for it."""
-    fx = {"creep": {"tau_s": 20.0, "gain_mm_per_v": -0.2}}
+    fx = {"creep": {"tau_s": 20.0, "gain_mm_per_v": -0.1}}
     d = diagnose(plant_record(fx, 240.0, 29, holds=True), candidates=["creep", "drift"])
     creep = next(r for r in d.candidates if r.name == "creep")
     assert creep.outcome is Outcome.NOT_TESTABLE and "too few to decide" in creep.reason
