@@ -63,6 +63,7 @@ from scipy.signal import lfilter
 from ipmc_driver.validation import as_signal, same_length
 
 from .errors import check_fitted
+from .metrics import effective_samples
 
 #: Relaxation time constants (s), spaced by 3: charging (tens of ms) to creep (minutes).
 DEFAULT_MEMORY_TAUS_S = (0.05, 0.15, 0.45, 1.35, 4.0, 12.0, 36.0, 108.0)
@@ -82,6 +83,9 @@ DEFAULT_ALPHAS = tuple(float(a) for a in np.logspace(-9, -2, 8))
 MIN_SPANS_PER_TAU = 3.0
 #: The charging stage starts at this many samples' time constant (0.3 s at 100 Hz).
 INITIAL_TAU_SAMPLES = 30
+#: Effective samples of the fit's residual a hinge of the output map needs beyond it for the
+#: map to go on at its slope past the fit range: one fixes the slope, a second checks it.
+EDGE_EFFECTIVE_SAMPLES = 2
 
 
 def rate_limited_charge(u_v, tau_s: float, slew_v_per_s: float, dt_s: float,
@@ -225,19 +229,39 @@ def hinge_slope(z: np.ndarray, knots: np.ndarray, coef: np.ndarray) -> np.ndarra
 
 
 def hinge_map(z: np.ndarray, knots: np.ndarray, coef: np.ndarray,
-              z_range: tuple[float, float] = (-math.inf, math.inf)) -> np.ndarray:
+              z_range: tuple[float, float] = (-math.inf, math.inf),
+              edge_slopes: tuple[float, float] | None = None) -> np.ndarray:
     """The piecewise-linear map ``g(z)``, continued beyond ``z_range`` (the range of z it was
-    fitted on) with its slope at that range's edge: no data fixes the slope change at a hinge
-    beyond it, so its coefficient is whatever the optimiser left there, and a free run that
-    leaves the range would follow it."""
+    fitted on) straight at ``edge_slopes`` (below, above; None: its slope at that range's
+    edge): no data fixes the slope change at a hinge beyond it, so its coefficient is
+    whatever the optimiser left there, and a free run that leaves the range would follow it."""
     lo, hi = z_range
     if lo == -math.inf and hi == math.inf:
         return hinge_basis(z, knots) @ coef
     zc = np.clip(z, lo, hi)
     g = hinge_basis(zc, knots) @ coef
     out = zc != z   # the slopes only where the run left the range (a free run's hot path)
-    g[out] += hinge_slope(zc[out], knots, coef) * (z[out] - zc[out])
+    if edge_slopes is None:
+        slope = hinge_slope(zc[out], knots, coef)
+    else:
+        slope = np.where(z[out] < lo, edge_slopes[0], edge_slopes[1])
+    g[out] += slope * (z[out] - zc[out])
     return g
+
+
+def determined_edge_slopes(z: np.ndarray, knots: np.ndarray, coef: np.ndarray,
+                           min_rows: float) -> tuple[float, float]:
+    """The slopes the map goes on at below and above the range of ``z`` (its inputs on the
+    fit's rows): at each end, that of the outermost segment whose hinge has at least
+    ``min_rows`` of z beyond it. A hinge with fewer rows beyond it (the joint fit moves z
+    after the hinges are placed, and one can end just inside the range's end) has a slope
+    change fitted to those few rows, hundreds of mm per unit on a handful, which a run
+    beyond the range would follow."""
+    above = np.sum(z[:, None] > knots[None, :], axis=0)
+    below = np.sum(z[:, None] < knots[None, :], axis=0)
+    upper = float(coef[0] + coef[1:][above >= min_rows].sum())
+    lower = float(coef[0] + coef[1:][below < min_rows].sum())
+    return lower, upper
 
 
 def delayed(u: np.ndarray, samples: int, history=None) -> np.ndarray:
@@ -419,6 +443,7 @@ class GeneralizedPI:
         self.progress = progress
         self.weights_ = None
         self.map_range_ = (-math.inf, math.inf)
+        self.map_edge_slopes_ = None
         self.neutral_output_stage()
 
     def neutral_output_stage(self) -> None:
@@ -698,13 +723,20 @@ class GeneralizedPI:
         self.output_coef_ = np.array(x[x.size - self.n_output_channels:])
 
     def _learned_on(self, u: np.ndarray, y: np.ndarray) -> None:
-        """The map input's range on the rows of ``u`` the fit measured (``y`` finite), and
+        """The map input's range on the rows of ``u`` the fit measured (``y`` finite), the
+        slopes beyond it (:func:`determined_edge_slopes`, a hinge determined by
+        :data:`EDGE_EFFECTIVE_SAMPLES` of the residual's effective samples beyond it), and
         the fit's RMSE there, from one free run."""
         A, X = self._design_and_outputs(u, self._theta)
         z = A @ self.weights_
         seen = np.isfinite(y)
         self.map_range_ = (float(z[seen].min()), float(z[seen].max()))
-        self.train_rmse_ = float(np.sqrt(np.nanmean((self._output_of(z, X) - y) ** 2)))
+        self.map_edge_slopes_ = None
+        e = (self._output_of(z, X) - y)[seen]
+        self.train_rmse_ = float(np.sqrt(np.mean(e ** 2)))
+        rows_per_sample = e.size / effective_samples(e) if np.ptp(e) > 0 else 1.0
+        self.map_edge_slopes_ = determined_edge_slopes(
+            z[seen], self.knots_, self.map_coef_, EDGE_EFFECTIVE_SAMPLES * rows_per_sample)
 
     def _joint_fit(self, u, y, x0, bounds, alpha: float, max_nfev: int | None = None
                    ) -> np.ndarray:
@@ -821,7 +853,8 @@ class GeneralizedPI:
     def _output_of(self, z: np.ndarray, X: np.ndarray) -> np.ndarray:
         """The free run's output (mm) from the map's input ``z`` and the output channels."""
         added = X @ self.output_coef_ if self.n_output_channels else 0.0
-        return self.output_stage(hinge_map(z, self.knots_, self.map_coef_, self.map_range_),
+        return self.output_stage(hinge_map(z, self.knots_, self.map_coef_, self.map_range_,
+                                           self.map_edge_slopes_),
                                  np.arange(z.size) * self.dt_s, added)
 
     def predict(self, u, y=None) -> np.ndarray:
@@ -940,7 +973,8 @@ class GpiStepper:
         added = n.out_relax @ m.output_coef_[r:]
         if r:
             added = added + m.output_coef_[0] * m._charging_current(n.v, self.state.v)
-        return m.output_stage(hinge_map(z, m.knots_, m.map_coef_, m.map_range_),
+        return m.output_stage(hinge_map(z, m.knots_, m.map_coef_, m.map_range_,
+                                        m.map_edge_slopes_),
                               self.state.k * m.dt_s, added)
 
     def outputs(self, x_candidates) -> np.ndarray:

@@ -77,3 +77,15 @@ def score(y, y_hat, skip: int = 0) -> dict:
         "fit_percent": fit_percent(y, y_hat, skip),
         "max_abs": max_abs(y, y_hat, skip),
     }
+
+
+def effective_samples(e: np.ndarray) -> float:
+    """n / (1 + 2 sum rho_k): the residual's samples worth of independent ones, the
+    autocorrelations summed up to the first that is not positive (Geyer's initial positive
+    sequence); a slow residual has few."""
+    e = e - e.mean()
+    f = np.fft.rfft(e, 2 * e.size)
+    acf = np.fft.irfft(f * np.conj(f))[:e.size]
+    acf = acf / acf[0]
+    stop = int(np.argmax(acf[1:] <= 0)) + 1 if np.any(acf[1:] <= 0) else e.size
+    return float(e.size / max(1.0, 1.0 + 2.0 * acf[1:stop].sum()))

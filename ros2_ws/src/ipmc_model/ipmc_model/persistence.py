@@ -214,6 +214,8 @@ def _gpi_doc(model) -> tuple[str, dict, dict]:
     body["limit_mm_"] = float(m.limit_mm_) if math.isfinite(m.limit_mm_) else None
     body["delay_samples_"] = int(m.delay_samples_)
     body["map_range_"] = [v if math.isfinite(v) else None for v in m.map_range_]
+    if m.map_edge_slopes_ is not None:
+        body["map_edge_slopes_"] = [float(v) for v in m.map_edge_slopes_]
     if inverse:
         body["u_max_v"] = model.u_max_v
     return ("gpi-inverse" if inverse else "gpi"), body, {k: getattr(m, k) for k in GPI_ARRAYS}
@@ -240,6 +242,9 @@ def _build_gpi(body: dict, arrays: dict):
     # a file written before the map's range was kept extrapolates with its outer hinges
     lo, hi = body.get("map_range_", [None, None])
     m.map_range_ = (-math.inf if lo is None else float(lo), math.inf if hi is None else float(hi))
+    # one written before the determined edge slopes goes on at the slopes at its range's edges
+    edge = body.get("map_edge_slopes_")
+    m.map_edge_slopes_ = None if edge is None else (float(edge[0]), float(edge[1]))
     for k in GPI_ARRAYS:
         setattr(m, k, np.asarray(arrays[k], dtype=float))
     cv = body["cv"]

@@ -13,7 +13,14 @@ from ipmc_driver.dataio import Record, save_csv
 from ipmc_driver.plant import IpmcPlant
 from ipmc_driver.signals import mixed, random_sine, sine
 from ipmc_model.errors import ModelFileError
-from ipmc_model.hysteresis import GeneralizedPI, GpiInverse, delayed, rate_limited_charge
+from ipmc_model.hysteresis import (
+    GeneralizedPI,
+    GpiInverse,
+    delayed,
+    determined_edge_slopes,
+    hinge_map,
+    rate_limited_charge,
+)
 from ipmc_model.identify_cli import evaluate_main, identify_main
 from ipmc_model.persistence import load_model, save_model
 from ipmc_model.selection import LinearArx, record_limits
@@ -148,6 +155,41 @@ def test_a_hinge_beyond_the_fitted_range_does_not_move_the_free_run(tmp_path):
     hinged.map_range_ = (-np.inf, np.inf)   # without the range the hinge takes over
     assert _rmse(hinged.simulate(wide), before) > 1.0
     assert load_model(save_model(m, tmp_path / "gpi")).map_range_ == m.map_range_
+
+
+def test_a_hinge_with_a_handful_of_rows_beyond_it_does_not_steer_the_run_past_the_range(
+        tmp_path):
+    """A hinge left just inside the top of the fit's range, three of its rows beyond it and a
+    slope change no data checks (1000 mm per unit): past the range the map goes on at the
+    slope below that hinge, as it would without it, and that slope survives the file."""
+    _, u = random_sine(60.0, 100.0, 1.5, seed=4)
+    y = IpmcPlant(seed=4).run(u).y_mm
+    m = GeneralizedPI(max_nfev=10).fit(u, y)
+    z_fit = m._design_and_outputs(u, m._theta)[0] @ m.weights_
+    _, wide = random_sine(30.0, 100.0, 3.0, seed=5)
+    before = m.simulate(wide)
+    hinged = copy.deepcopy(m)
+    hinged.knots_ = np.r_[m.knots_, np.sort(z_fit)[-4]]
+    hinged.map_coef_ = np.r_[m.map_coef_, 1000.0]
+    hinged._learned_on(u, y)
+    assert hinged.map_edge_slopes_[1] == pytest.approx(m.map_edge_slopes_[1])
+    loaded = load_model(save_model(hinged, tmp_path / "gpi"))
+    assert loaded.map_edge_slopes_ == hinged.map_edge_slopes_
+    np.testing.assert_allclose(loaded.simulate(wide), hinged.simulate(wide), atol=1e-9)
+    hinged.map_edge_slopes_ = None   # at the slope at the range's edge: the hinge's
+    assert _rmse(hinged.simulate(wide), before) > 1.0
+
+
+def test_each_edge_slope_is_the_outermost_segment_with_enough_rows_beyond_its_hinge():
+    z = np.linspace(0.0, 1.0, 1000)
+    knots, coef = np.array([0.2, 0.5, 0.999]), np.array([1.0, 1.0, -1.0, 500.0])
+    # one row above the top hinge: its 500 is not followed; 200 rows below the lowest are
+    assert determined_edge_slopes(z, knots, coef, 10) == (1.0, 1.0)
+    # needing 300 rows, the lowest segment (200) is not followed either: the next one is
+    assert determined_edge_slopes(z, knots, coef, 300) == (2.0, 1.0)
+    beyond = np.array([-1.0, 2.0])
+    np.testing.assert_allclose(hinge_map(beyond, knots, coef, (0.0, 1.0), (2.0, 1.0)),
+                               hinge_map(np.array([0.0, 1.0]), knots, coef) + [-2.0, 1.0])
 
 
 def _csv(tmp_path, name, u, y, rate_hz=100.0):

@@ -33,6 +33,7 @@ from ..hysteresis import (
     estimate_delay,
     lowpass_bank,
 )
+from ..metrics import effective_samples
 from .experiment import Probe, crossings, holds, probe_level_v, sweep
 from .parallel import fan_out
 from .record import DiagnosisRecord
@@ -626,18 +627,6 @@ def _creep_params(m: GeneralizedPI, taus, rec: DiagnosisRecord) -> dict:
     est = creep_estimate(base, rec)
     return {"taus_s": list(taus), "gains_mm_per_v": [float(g) for g in m.output_coef_[-n:]],
             **est}
-
-
-def effective_samples(e: np.ndarray) -> float:
-    """n / (1 + 2 sum rho_k): the residual's samples worth of independent ones, the
-    autocorrelations summed up to the first that is not positive (Geyer's initial positive
-    sequence); a slow residual has few."""
-    e = e - e.mean()
-    f = np.fft.rfft(e, 2 * e.size)
-    acf = np.fft.irfft(f * np.conj(f))[:e.size]
-    acf = acf / acf[0]
-    stop = int(np.argmax(acf[1:] <= 0)) + 1 if np.any(acf[1:] <= 0) else e.size
-    return float(e.size / max(1.0, 1.0 + 2.0 * acf[1:stop].sum()))
 
 
 def creep_estimate(base: GeneralizedPI, rec: DiagnosisRecord) -> dict:
