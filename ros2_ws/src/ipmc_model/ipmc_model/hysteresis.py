@@ -83,7 +83,7 @@ DEFAULT_ALPHAS = tuple(float(a) for a in np.logspace(-9, -2, 8))
 MIN_SPANS_PER_TAU = 3.0
 #: The charging stage starts at this many samples' time constant (0.3 s at 100 Hz).
 INITIAL_TAU_SAMPLES = 30
-#: Effective samples of the fit's residual a hinge of the output map needs beyond it for the
+#: Independent samples of the fit's residual with z beyond a hinge of the output map for the
 #: map to go on at its slope past the fit range: one fixes the slope, a second checks it.
 EDGE_EFFECTIVE_SAMPLES = 2
 
@@ -249,18 +249,34 @@ def hinge_map(z: np.ndarray, knots: np.ndarray, coef: np.ndarray,
     return g
 
 
-def determined_edge_slopes(z: np.ndarray, knots: np.ndarray, coef: np.ndarray,
-                           min_rows: float) -> tuple[float, float]:
+def independent_samples(rows: np.ndarray, block_rows: float) -> int:
+    """Independent samples among ``rows`` (sorted sample indices) of a signal correlated over
+    ``block_rows`` samples: each run of rows (gaps below ``block_rows`` joined) counts one,
+    and one more per ``block_rows`` it lasts."""
+    if rows.size == 0:
+        return 0
+    breaks = np.flatnonzero(np.diff(rows) > block_rows)
+    starts, ends = rows[np.r_[0, breaks + 1]], rows[np.r_[breaks, rows.size - 1]]
+    return int(np.sum(1 + (ends - starts) // block_rows))
+
+
+def determined_edge_slopes(z: np.ndarray, rows: np.ndarray, knots: np.ndarray,
+                           coef: np.ndarray, block_rows: float, min_samples: int
+                           ) -> tuple[float, float]:
     """The slopes the map goes on at below and above the range of ``z`` (its inputs on the
-    fit's rows): at each end, that of the outermost segment whose hinge has at least
-    ``min_rows`` of z beyond it. A hinge with fewer rows beyond it (the joint fit moves z
-    after the hinges are placed, and one can end just inside the range's end) has a slope
-    change fitted to those few rows, hundreds of mm per unit on a handful, which a run
-    beyond the range would follow."""
-    above = np.sum(z[:, None] > knots[None, :], axis=0)
-    below = np.sum(z[:, None] < knots[None, :], axis=0)
-    upper = float(coef[0] + coef[1:][above >= min_rows].sum())
-    lower = float(coef[0] + coef[1:][below < min_rows].sum())
+    fit's ``rows``): at each end, that of the outermost segment whose hinge has z beyond it
+    in at least ``min_samples`` independent samples (:func:`independent_samples`, for a
+    residual correlated over ``block_rows``). A hinge beyond which z goes on one visit only
+    (the joint fit moves z after the hinges are placed, and one can end just inside the
+    range's end) has a slope change fitted to that visit, hundreds of mm per unit on a
+    handful of rows, which a run beyond the range would follow."""
+    def count(beyond: np.ndarray) -> np.ndarray:
+        return np.array([independent_samples(rows[b], block_rows) for b in beyond.T])
+
+    above = count(z[:, None] > knots[None, :])
+    below = count(z[:, None] < knots[None, :])
+    upper = float(coef[0] + coef[1:][above >= min_samples].sum())
+    lower = float(coef[0] + coef[1:][below < min_samples].sum())
     return lower, upper
 
 
@@ -724,8 +740,8 @@ class GeneralizedPI:
 
     def _learned_on(self, u: np.ndarray, y: np.ndarray) -> None:
         """The map input's range on the rows of ``u`` the fit measured (``y`` finite), the
-        slopes beyond it (:func:`determined_edge_slopes`, a hinge determined by
-        :data:`EDGE_EFFECTIVE_SAMPLES` of the residual's effective samples beyond it), and
+        slopes beyond it (:func:`determined_edge_slopes`, a hinge determined by z beyond it
+        in :data:`EDGE_EFFECTIVE_SAMPLES` independent samples of the fit's residual), and
         the fit's RMSE there, from one free run."""
         A, X = self._design_and_outputs(u, self._theta)
         z = A @ self.weights_
@@ -734,9 +750,10 @@ class GeneralizedPI:
         self.map_edge_slopes_ = None
         e = (self._output_of(z, X) - y)[seen]
         self.train_rmse_ = float(np.sqrt(np.mean(e ** 2)))
-        rows_per_sample = e.size / effective_samples(e) if np.ptp(e) > 0 else 1.0
+        block_rows = e.size / effective_samples(e) if np.ptp(e) > 0 else 1.0
         self.map_edge_slopes_ = determined_edge_slopes(
-            z[seen], self.knots_, self.map_coef_, EDGE_EFFECTIVE_SAMPLES * rows_per_sample)
+            z[seen], np.flatnonzero(seen), self.knots_, self.map_coef_, block_rows,
+            EDGE_EFFECTIVE_SAMPLES)
 
     def _joint_fit(self, u, y, x0, bounds, alpha: float, max_nfev: int | None = None
                    ) -> np.ndarray:

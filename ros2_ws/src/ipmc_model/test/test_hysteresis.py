@@ -19,6 +19,7 @@ from ipmc_model.hysteresis import (
     delayed,
     determined_edge_slopes,
     hinge_map,
+    independent_samples,
     rate_limited_charge,
 )
 from ipmc_model.identify_cli import evaluate_main, identify_main
@@ -157,11 +158,11 @@ def test_a_hinge_beyond_the_fitted_range_does_not_move_the_free_run(tmp_path):
     assert load_model(save_model(m, tmp_path / "gpi")).map_range_ == m.map_range_
 
 
-def test_a_hinge_with_a_handful_of_rows_beyond_it_does_not_steer_the_run_past_the_range(
+def test_a_hinge_with_one_row_beyond_it_does_not_steer_the_run_past_the_range(
         tmp_path):
-    """A hinge left just inside the top of the fit's range, three of its rows beyond it and a
-    slope change no data checks (1000 mm per unit): past the range the map goes on at the
-    slope below that hinge, as it would without it, and that slope survives the file."""
+    """A hinge left just inside the top of the fit's range, one row beyond it and a slope
+    change no data checks (1000 mm per unit): past the range the map goes on at the slope
+    below that hinge, as it would without it, and that slope survives the file."""
     _, u = random_sine(60.0, 100.0, 1.5, seed=4)
     y = IpmcPlant(seed=4).run(u).y_mm
     m = GeneralizedPI(max_nfev=10).fit(u, y)
@@ -169,7 +170,7 @@ def test_a_hinge_with_a_handful_of_rows_beyond_it_does_not_steer_the_run_past_th
     _, wide = random_sine(30.0, 100.0, 3.0, seed=5)
     before = m.simulate(wide)
     hinged = copy.deepcopy(m)
-    hinged.knots_ = np.r_[m.knots_, np.sort(z_fit)[-4]]
+    hinged.knots_ = np.r_[m.knots_, np.mean(np.sort(z_fit)[-2:])]
     hinged.map_coef_ = np.r_[m.map_coef_, 1000.0]
     hinged._learned_on(u, y)
     assert hinged.map_edge_slopes_[1] == pytest.approx(m.map_edge_slopes_[1])
@@ -180,13 +181,27 @@ def test_a_hinge_with_a_handful_of_rows_beyond_it_does_not_steer_the_run_past_th
     assert _rmse(hinged.simulate(wide), before) > 1.0
 
 
-def test_each_edge_slope_is_the_outermost_segment_with_enough_rows_beyond_its_hinge():
-    z = np.linspace(0.0, 1.0, 1000)
+def test_independent_samples_count_visits_and_their_length():
+    # runs joined across gaps up to 10 rows; one more sample per 10 rows a run lasts
+    assert independent_samples(np.array([], dtype=int), 10.0) == 0
+    assert independent_samples(np.array([5]), 10.0) == 1
+    assert independent_samples(np.array([9, 10, 11]), 10.0) == 1   # across a block edge
+    assert independent_samples(np.array([5, 12, 40]), 10.0) == 2
+    assert independent_samples(np.arange(100, 125), 10.0) == 3
+
+
+def test_each_edge_slope_is_that_of_the_outermost_segment_visited_twice_beyond_its_hinge():
+    rows = np.arange(1000)
+    z = np.linspace(0.0, 1.0, 1000)   # in time order: one sweep up
     knots, coef = np.array([0.2, 0.5, 0.999]), np.array([1.0, 1.0, -1.0, 500.0])
-    # one row above the top hinge: its 500 is not followed; 200 rows below the lowest are
-    assert determined_edge_slopes(z, knots, coef, 10) == (1.0, 1.0)
-    # needing 300 rows, the lowest segment (200) is not followed either: the next one is
-    assert determined_edge_slopes(z, knots, coef, 300) == (2.0, 1.0)
+    # one row above the top hinge: its 500 is not followed; 200 below the lowest are
+    assert determined_edge_slopes(z, rows, knots, coef, 10.0, 2) == (1.0, 1.0)
+    # correlated over 150 rows, the 200 below the lowest hinge are two samples: needing
+    # three, the lowest segment is not followed either, the next one is
+    assert determined_edge_slopes(z, rows, knots, coef, 150.0, 3) == (2.0, 1.0)
+    # two peaks, each a few rows above the top hinge: it is followed
+    twice = 0.5 + 0.5 * np.sin(2 * np.pi * 2 * rows / 1000)
+    assert determined_edge_slopes(twice, rows, knots, coef, 50.0, 2)[1] == 501.0
     beyond = np.array([-1.0, 2.0])
     np.testing.assert_allclose(hinge_map(beyond, knots, coef, (0.0, 1.0), (2.0, 1.0)),
                                hinge_map(np.array([0.0, 1.0]), knots, coef) + [-2.0, 1.0])
