@@ -63,7 +63,7 @@ from scipy.signal import lfilter
 from ipmc_driver.validation import as_signal, same_length
 
 from .errors import check_fitted
-from .metrics import effective_samples
+from .metrics import effective_samples, independent_samples
 
 #: Relaxation time constants (s), spaced by 3: charging (tens of ms) to creep (minutes).
 DEFAULT_MEMORY_TAUS_S = (0.05, 0.15, 0.45, 1.35, 4.0, 12.0, 36.0, 108.0)
@@ -247,17 +247,6 @@ def hinge_map(z: np.ndarray, knots: np.ndarray, coef: np.ndarray,
         slope = np.where(z[out] < lo, edge_slopes[0], edge_slopes[1])
     g[out] += slope * (z[out] - zc[out])
     return g
-
-
-def independent_samples(rows: np.ndarray, block_rows: float) -> int:
-    """Independent samples among ``rows`` (sorted sample indices) of a signal correlated over
-    ``block_rows`` samples: each run of rows (gaps below ``block_rows`` joined) counts one,
-    and one more per ``block_rows`` it lasts."""
-    if rows.size == 0:
-        return 0
-    breaks = np.flatnonzero(np.diff(rows) > block_rows)
-    starts, ends = rows[np.r_[0, breaks + 1]], rows[np.r_[breaks, rows.size - 1]]
-    return int(np.sum(1 + (ends - starts) // block_rows))
 
 
 def determined_edge_slopes(z: np.ndarray, rows: np.ndarray, knots: np.ndarray,
@@ -747,7 +736,6 @@ class GeneralizedPI:
         z = A @ self.weights_
         seen = np.isfinite(y)
         self.map_range_ = (float(z[seen].min()), float(z[seen].max()))
-        self.map_edge_slopes_ = None
         e = (self._output_of(z, X) - y)[seen]
         self.train_rmse_ = float(np.sqrt(np.mean(e ** 2)))
         block_rows = e.size / effective_samples(e) if np.ptp(e) > 0 else 1.0

@@ -89,3 +89,14 @@ def effective_samples(e: np.ndarray) -> float:
     acf = acf / acf[0]
     stop = int(np.argmax(acf[1:] <= 0)) + 1 if np.any(acf[1:] <= 0) else e.size
     return float(e.size / max(1.0, 1.0 + 2.0 * acf[1:stop].sum()))
+
+
+def independent_samples(rows: np.ndarray, block_rows: float) -> int:
+    """Independent samples among ``rows`` (sorted sample indices) of a signal correlated over
+    ``block_rows`` samples: each run of rows (gaps below ``block_rows`` joined) counts one,
+    and one more per ``block_rows`` it lasts."""
+    if rows.size == 0:
+        return 0
+    breaks = np.flatnonzero(np.diff(rows) > block_rows)
+    starts, ends = rows[np.r_[0, breaks + 1]], rows[np.r_[breaks, rows.size - 1]]
+    return int(np.sum(1 + (ends - starts) // block_rows))

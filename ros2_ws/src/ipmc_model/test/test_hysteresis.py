@@ -19,7 +19,6 @@ from ipmc_model.hysteresis import (
     delayed,
     determined_edge_slopes,
     hinge_map,
-    independent_samples,
     rate_limited_charge,
 )
 from ipmc_model.identify_cli import evaluate_main, identify_main
@@ -179,15 +178,6 @@ def test_a_hinge_with_one_row_beyond_it_does_not_steer_the_run_past_the_range(
     np.testing.assert_allclose(loaded.simulate(wide), hinged.simulate(wide), atol=1e-9)
     hinged.map_edge_slopes_ = None   # at the slope at the range's edge: the hinge's
     assert _rmse(hinged.simulate(wide), before) > 1.0
-
-
-def test_independent_samples_count_visits_and_their_length():
-    # runs joined across gaps up to 10 rows; one more sample per 10 rows a run lasts
-    assert independent_samples(np.array([], dtype=int), 10.0) == 0
-    assert independent_samples(np.array([5]), 10.0) == 1
-    assert independent_samples(np.array([9, 10, 11]), 10.0) == 1   # across a block edge
-    assert independent_samples(np.array([5, 12, 40]), 10.0) == 2
-    assert independent_samples(np.arange(100, 125), 10.0) == 3
 
 
 def test_each_edge_slope_is_that_of_the_outermost_segment_visited_twice_beyond_its_hinge():

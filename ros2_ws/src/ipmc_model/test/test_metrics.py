@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from ipmc_model.metrics import fit_percent, max_abs, nrmse, rmse, score
+from ipmc_model.metrics import fit_percent, independent_samples, max_abs, nrmse, rmse, score
 
 
 def test_metrics_known_values():
@@ -35,3 +35,12 @@ def test_metrics_reject_nan():
 def test_metrics_reject_bad_skip():
     with pytest.raises(ValueError, match="skip"):
         rmse([1.0, 2.0], [1.0, 2.0], skip=2)
+
+
+def test_independent_samples_count_visits_and_their_length():
+    # runs joined across gaps up to 10 rows; one more sample per 10 rows a run lasts
+    assert independent_samples(np.array([], dtype=int), 10.0) == 0
+    assert independent_samples(np.array([5]), 10.0) == 1
+    assert independent_samples(np.array([9, 10, 11]), 10.0) == 1   # across a block edge
+    assert independent_samples(np.array([5, 12, 40]), 10.0) == 2
+    assert independent_samples(np.arange(100, 125), 10.0) == 3
