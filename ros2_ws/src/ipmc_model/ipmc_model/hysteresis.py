@@ -85,7 +85,7 @@ MIN_SPANS_PER_TAU = 3.0
 INITIAL_TAU_SAMPLES = 30
 #: Independent samples of the fit's residual with z beyond a hinge of the output map for the
 #: map to go on at its slope past the fit range: one fixes the slope, a second checks it.
-EDGE_EFFECTIVE_SAMPLES = 2
+EDGE_INDEPENDENT_SAMPLES = 2
 
 
 def rate_limited_charge(u_v, tau_s: float, slew_v_per_s: float, dt_s: float,
@@ -730,7 +730,7 @@ class GeneralizedPI:
     def _learned_on(self, u: np.ndarray, y: np.ndarray) -> None:
         """The map input's range on the rows of ``u`` the fit measured (``y`` finite), the
         slopes beyond it (:func:`determined_edge_slopes`, a hinge determined by z beyond it
-        in :data:`EDGE_EFFECTIVE_SAMPLES` independent samples of the fit's residual), and
+        in :data:`EDGE_INDEPENDENT_SAMPLES` independent samples of the fit's residual), and
         the fit's RMSE there, from one free run."""
         A, X = self._design_and_outputs(u, self._theta)
         z = A @ self.weights_
@@ -741,7 +741,7 @@ class GeneralizedPI:
         block_rows = e.size / effective_samples(e) if np.ptp(e) > 0 else 1.0
         self.map_edge_slopes_ = determined_edge_slopes(
             z[seen], np.flatnonzero(seen), self.knots_, self.map_coef_, block_rows,
-            EDGE_EFFECTIVE_SAMPLES)
+            EDGE_INDEPENDENT_SAMPLES)
 
     def _joint_fit(self, u, y, x0, bounds, alpha: float, max_nfev: int | None = None
                    ) -> np.ndarray:
