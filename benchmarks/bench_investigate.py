@@ -6,6 +6,7 @@ it decides. Prints figures; not part of the pass/fail suite.
     .venv/bin/python benchmarks/bench_investigate.py [--case creep ...] [--rate-hz 50] [--graph]
     .venv/bin/python benchmarks/bench_investigate.py --case dead_zone --seeds 0 1 2 3 4 5 6 7
     .venv/bin/python benchmarks/bench_investigate.py --twin-of REPORT_DIR
+    .venv/bin/python benchmarks/bench_investigate.py --case dead_zone --plant-param hyst_weight=0
 
 ``--graph`` runs each round through the lock-step ROS graph (``ipmc bringup --sim --lockstep
 --experiment FILE --record BAG``, 100 Hz), as ``ipmc investigate --sim`` does; the default is
@@ -23,6 +24,10 @@ printed beside it.
 ``--seeds`` runs each case on several seeds and closes with how often the found parameters'
 95 % intervals held the plant's values: a calibrated interval holds it on about 95 % of
 them.
+
+``--plant-param KEY=VALUE`` sets one of the simulated IPMC's parameters (``plant:`` in
+ipmc_driver's plant_default.yaml) for the investigation and its clean twin alike: which part
+of the plant an estimate's bias comes from (the effects keep their values).
 
 ``--twin-of`` takes the report folder of an investigation run elsewhere (through the rig
 emulator: ``ipmc investigate --rig PTY --report DIR``) and prints the same comparison: the
@@ -145,26 +150,26 @@ def found_params(inv: Investigation) -> str:
     return " | ".join(out) or "-"
 
 
-def clean_twin(inv: Investigation, rate_hz: float, seed: int, together: bool
-               ) -> tuple[float, list[str]]:
+def clean_twin(inv: Investigation, rate_hz: float, seed: int, together: bool,
+               plant_params: dict | None = None) -> tuple[float, list[str]]:
     """The clean plant under the last round's input (every round's, ``together``), the same
     seeds, split and judged on the same rows as the investigation's last round: the final
     held-out error and what it found there."""
     first = 0 if together else len(inv.rounds) - 1
     d = clean_diagnosis([(f"round {i + 1}", rnd.played.u_v, seed + i, rnd.played.parts)
                          for i, rnd in enumerate(inv.rounds[first:], start=first)],
-                        1.0 / rate_hz)
+                        1.0 / rate_hz, plant_params)
     return d.rmse_after_mm, d.effects_found
 
 
-def clean_diagnosis(runs, dt_s: float):
-    """The clean simulated IPMC under each run's voltages ``(name, u_v, seed, parts)``, the
-    records diagnosed together."""
+def clean_diagnosis(runs, dt_s: float, plant_params: dict | None = None):
+    """The clean simulated IPMC (of ``plant_params``; None: the shipped calibration) under
+    each run's voltages ``(name, u_v, seed, parts)``, the records diagnosed together."""
     from ipmc_driver.plant import IpmcPlant
 
     records = []
     for name, u_v, seed, parts in runs:
-        run = IpmcPlant(effects=(), seed=seed, dt_s=dt_s).run(u_v)
+        run = IpmcPlant(plant_params, effects=(), seed=seed, dt_s=dt_s).run(u_v)
         records.append((name, run.t_s, run.u_v, run.y_mm, parts))
     return diagnose_records(records)
 
@@ -180,10 +185,12 @@ class CaseResult:
 
 
 def run_case(case: Case, rate_hz: float, seed: int, out: Path, together: bool = False,
-             graph: bool = False) -> CaseResult:
-    """Investigate one case (in process, or through the lock-step graph at its rate)."""
+             graph: bool = False, plant_params: dict | None = None) -> CaseResult:
+    """Investigate one case (in process, or through the lock-step graph at its rate), on the
+    simulated IPMC with ``plant_params`` (None: the shipped calibration; in process only)."""
     runner = (GraphRunner(effects=list(case.effects)) if graph else
-              InProcessRunner(list(case.effects), seed=seed, rate_hz=rate_hz))
+              InProcessRunner(list(case.effects), seed=seed, rate_hz=rate_hz,
+                              plant_params=plant_params))
     first = (smooth_input(rate_hz, seed, out / "round_1") if case.smooth else
              first_input("random-sine", seconds=SECONDS, rate_hz=rate_hz, amplitude_v=3.0,
                          seed=seed, out_dir=out / "round_1"))
@@ -194,7 +201,7 @@ def run_case(case: Case, rate_hz: float, seed: int, out: Path, together: bool = 
                                                   flush=True))
     wall_s = time.perf_counter() - t0
     write_investigation(inv, out)
-    clean, clean_found = clean_twin(inv, rate_hz, seed, together)
+    clean, clean_found = clean_twin(inv, rate_hz, seed, together, plant_params)
     lines = [f"{case.name}: plant {case.plant}; first input "
              f"{'smooth random sine' if case.smooth else 'random sine'} {SECONDS:g} s; "
              f"{runner.describe()}",
@@ -262,6 +269,28 @@ def twin_of(report: Path, seed: int) -> list[str]:
             f"{sum(r.get('samples_lost', 0) for r in summary['rounds'])} samples lost"]
 
 
+def plant_params_with(settings: list[str], parser: argparse.ArgumentParser) -> dict | None:
+    """The shipped plant's parameters with each ``KEY=VALUE`` of ``settings`` set (None when
+    there is none); a key the plant does not have, or a value that is not a number, is
+    refused naming the keys it has."""
+    from ipmc_driver.plant import load_plant_params
+
+    if not settings:
+        return None
+    params = load_plant_params()
+    keys = sorted(k for k in params if k != "effects")
+    for item in settings:
+        key, _, value = item.partition("=")
+        if key not in keys:
+            parser.error(f"--plant-param {item}: the simulated IPMC has no parameter {key!r}; "
+                         f"it has {', '.join(keys)}")
+        try:
+            params[key] = float(value)
+        except ValueError:
+            parser.error(f"--plant-param {item}: {value!r} is not a number")
+    return params
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--case", action="append", choices=list(CASES),
@@ -277,6 +306,9 @@ def main() -> int:
     p.add_argument("--graph", action="store_true",
                    help="through the lock-step ROS graph at its rate (as ipmc investigate "
                         "--sim), not the simulated IPMC in this process")
+    p.add_argument("--plant-param", action="append", default=[], metavar="KEY=VALUE",
+                   help="set one of the simulated IPMC's parameters (plant: in "
+                        "plant_default.yaml), e.g. hyst_weight=0; in process only")
     p.add_argument("--twin-of", type=Path, metavar="REPORT_DIR",
                    help="compare a finished investigation (its report folder) with its clean "
                         "twin instead of running the cases")
@@ -284,8 +316,15 @@ def main() -> int:
     if args.twin_of:
         print("\n".join(twin_of(args.twin_of, args.seed)))
         return 0
+    plant_params = plant_params_with(args.plant_param, p)
     if args.graph:
+        if plant_params is not None:
+            p.error("--plant-param sets the plant in this process; the graph's plant node "
+                    "keeps its own")
         args.rate_hz = GraphRunner.rate_hz
+    if plant_params is not None:
+        print(f"the simulated IPMC with {', '.join(args.plant_param)} (the shipped calibration "
+              f"otherwise), in the investigations and their clean twins", flush=True)
     t0 = time.perf_counter()
     seeds = args.seeds or [args.seed]
     summary = []
@@ -295,7 +334,7 @@ def main() -> int:
             for seed in seeds:
                 results.append(run_case(CASES[name], args.rate_hz, seed,
                                         Path(tmp) / f"{name}_{seed}", args.together,
-                                        args.graph))
+                                        args.graph, plant_params))
                 print("\n".join(results[-1].lines), flush=True)
             summary.append(coverage(name, seeds, results))
     if len(seeds) > 1:

@@ -402,15 +402,20 @@ def residual_diagnoser(candidates: list[str] | None = None, progress: Progress |
 # -- runners --------------------------------------------------------------------------------
 class InProcessRunner:
     """The simulated IPMC (:class:`ipmc_driver.plant.IpmcPlant`) in this process, from rest
-    each round, its sensor noise seeded ``seed`` plus the round; writes ``record.csv``."""
+    each round, its sensor noise seeded ``seed`` plus the round; writes ``record.csv``.
+    ``plant_params``: the plant's parameters (:func:`ipmc_driver.plant.load_plant_params`'s
+    form; None: the shipped calibration)."""
 
-    def __init__(self, effects: list[str], seed: int = 0, rate_hz: float = GRAPH_RATE_HZ):
+    def __init__(self, effects: list[str], seed: int = 0, rate_hz: float = GRAPH_RATE_HZ,
+                 plant_params: dict | None = None):
         self.effects, self.seed, self.rate_hz = list(effects), int(seed), float(rate_hz)
+        self.plant_params = plant_params
         self._runs = 0
 
     def describe(self) -> str:
         fx = ", ".join(self.effects) or "no optional effect"
-        return f"the simulated IPMC in process ({fx}; {self.rate_hz:g} Hz)"
+        own = "" if self.plant_params is None else ", parameters of its own"
+        return f"the simulated IPMC in process ({fx}; {self.rate_hz:g} Hz{own})"
 
     def record(self, plan: PlannedInput, out_dir: Path) -> Recorded:
         from ipmc_driver.dataio import Record, save_csv
@@ -419,7 +424,7 @@ class InProcessRunner:
         if abs(plan.rate_hz - self.rate_hz) > 1e-6 * self.rate_hz:
             raise ValueError(f"the input is sampled at {plan.rate_hz:g} Hz, the plant at "
                              f"{self.rate_hz:g} Hz")
-        plant = IpmcPlant(effects=self.effects, seed=self.seed + self._runs,
+        plant = IpmcPlant(self.plant_params, effects=self.effects, seed=self.seed + self._runs,
                           dt_s=1.0 / self.rate_hz)
         self._runs += 1
         run = plant.run(plan.u_v)

@@ -17,6 +17,7 @@ from threadpoolctl import threadpool_limits
 from ipmc_control.excitation import load_excitation
 from ipmc_control.investigate import (
     GraphRunner,
+    InProcessRunner,
     InvestigationRound,
     PlannedInput,
     Recorded,
@@ -366,3 +367,21 @@ def test_the_parts_are_placed_where_the_record_played_them(tmp_path):
     short = Recorded(t[:100], u[:100], t[:100] * 0.0, tmp_path / "s.csv")
     assert placed_parts(plan, short, said.append) == ()
     assert len(said) == 1 and "shorter than the experiment" in said[0]
+
+
+def test_the_in_process_runner_plays_a_plant_of_the_parameters_given(tmp_path):
+    """Without its hysteresis the simulated IPMC bends otherwise under the same input (by
+    more than its sensor's noise), and without sensor noise its record does not depend on
+    the noise's seed."""
+    from ipmc_driver.plant import load_plant_params
+
+    plan = _first(tmp_path)
+    shipped = load_plant_params()
+    quiet = {**shipped, "noise_std_mm": 0.0, "resolution_mm": 0.0}
+    ys = [InProcessRunner([], seed=seed, rate_hz=RATE_HZ, plant_params=params)
+          .record(plan, tmp_path / f"{name}_{seed}").y_mm
+          for name, params in (("quiet", quiet), ("no_hysteresis", {**quiet, "hyst_weight": 0.0}))
+          for seed in (0, 7)]
+    assert np.array_equal(ys[0], ys[1]) and np.array_equal(ys[2], ys[3])
+    assert np.sqrt(np.mean((ys[0] - ys[2]) ** 2)) > shipped["noise_std_mm"]
+    assert "parameters of its own" in InProcessRunner([], plant_params=quiet).describe()
