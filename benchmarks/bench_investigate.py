@@ -313,10 +313,13 @@ def main() -> int:
                    help="compare a finished investigation (its report folder) with its clean "
                         "twin instead of running the cases")
     args = p.parse_args()
+    plant_params = plant_params_with(args.plant_param, p)
     if args.twin_of:
+        if plant_params is not None:
+            p.error("--plant-param sets the plant of the investigations run here; --twin-of "
+                    "compares one run elsewhere with the shipped plant")
         print("\n".join(twin_of(args.twin_of, args.seed)))
         return 0
-    plant_params = plant_params_with(args.plant_param, p)
     if args.graph:
         if plant_params is not None:
             p.error("--plant-param sets the plant in this process; the graph's plant node "
