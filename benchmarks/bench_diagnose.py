@@ -2,6 +2,7 @@
 time on 30 000 samples. Prints figures; not part of the pass/fail suite.
 
     .venv/bin/python benchmarks/bench_diagnose.py acceptance [--jobs 2] [--seed-offset N]
+        [--core-direction-channels N]
     .venv/bin/python benchmarks/bench_diagnose.py design [--jobs 2]
     .venv/bin/python benchmarks/bench_diagnose.py timing
     .venv/bin/python benchmarks/bench_diagnose.py second [--jobs 2] [--seed-offset N]
@@ -26,6 +27,10 @@ Scoring: a record is right when the effects found are exactly the injected ones;
 a drift on a record without holds is right when it is reported not testable for lack of
 holds and nothing else is named. The ratio compares the held-out free-run RMSE after the
 diagnosis with its clean twin's (same plant, input and seed, no effect): goal <= 1.2.
+
+``--core-direction-channels N``: the diagnosis's core model with direction memory on its N
+fastest channels (``DiagnosisConfig.core_direction_channels``; the given model's day too):
+the comparison behind its default of none.
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -191,28 +197,30 @@ def _is_right(case: Case, d) -> bool:
             and found == [n for n in case.names if n not in NEED_HOLDS])
 
 
-def run_case(case: Case) -> Outcome:
+def run_case(case: Case, config=None) -> Outcome:
+    """One record diagnosed (``config``: the diagnosis's, None its default)."""
     from ipmc_model.diagnosis import DiagnosisConfig, diagnose
     from ipmc_model.diagnosis.record import DiagnosisRecord
     from ipmc_model.diagnosis.search import core_model
+
+    config = config or DiagnosisConfig()
 
     with threadpool_limits(1):
         rec = record(case.plant, dict(case.effects), case.seed, case.holds)
         model = None
         if case.given is not None:  # a clean earlier day, seed + 100, same kind of input
             day1 = record(case.plant, dict(case.given), case.seed + 100, case.holds)
-            model = core_model(DiagnosisRecord(day1.t_s, day1.u_v, day1.y_mm,
-                                               DiagnosisConfig()))
+            model = core_model(DiagnosisRecord(day1.t_s, day1.u_v, day1.y_mm, config))
         t0 = time.perf_counter()
         # the cases run side by side, one per core: each diagnosis in its own process
-        d = diagnose(rec.t_s, rec.u_v, rec.y_mm, model=model, jobs=1)
+        d = diagnose(rec.t_s, rec.u_v, rec.y_mm, model=model, config=config, jobs=1)
         return Outcome(case, tuple(d.effects_found), _is_right(case, d), d.rmse_before_mm,
                        d.rmse_after_mm, d.noise_floor_mm, time.perf_counter() - t0)
 
 
-def table(cases, jobs: int) -> None:
+def table(cases, jobs: int, config=None) -> None:
     with ProcessPoolExecutor(jobs) as pool:
-        results = list(pool.map(run_case, cases))
+        results = list(pool.map(partial(run_case, config=config), cases))
     clean = {(r.case.plant, r.case.holds, r.case.given is not None, r.case.seed):
              r.rmse_after_mm for r in results if not r.case.effects}
     print("| record | found | right | RMSE before / after (mm) | after / clean twin | s |")
@@ -340,15 +348,29 @@ def main() -> None:
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--seed-offset", type=int, default=0,
                    help="shift every seed of the set: fresh records of the same kinds and sizes")
+    p.add_argument("--core-direction-channels", type=int, default=0, metavar="N",
+                   help="acceptance and design: the diagnosis's core model with direction "
+                        "memory on N channels (DiagnosisConfig.core_direction_channels; "
+                        "default 0, none)")
     a = p.parse_args()
+    if a.core_direction_channels and a.section in ("timing", "second"):
+        p.error(f"--core-direction-channels applies to acceptance and design, not {a.section}")
     if a.section == "timing":
         timing()
+        return
+    from ipmc_model.diagnosis import DiagnosisConfig
+
+    try:
+        config = DiagnosisConfig(core_direction_channels=a.core_direction_channels)
+    except ValueError as exc:
+        p.error(str(exc))
+    cases = DESIGN if a.section == "design" else ACCEPTANCE
+    cases = [Case(c.plant, c.holds, c.effects, c.given, c.seed + a.seed_offset) for c in cases]
+    print(f"{a.section} set: {len(cases)} records")
+    if a.section == "second":
+        second(cases, a.jobs)
     else:
-        cases = DESIGN if a.section == "design" else ACCEPTANCE
-        cases = [Case(c.plant, c.holds, c.effects, c.given, c.seed + a.seed_offset)
-                 for c in cases]
-        print(f"{a.section} set: {len(cases)} records")
-        (second if a.section == "second" else table)(cases, a.jobs)
+        table(cases, a.jobs, config)
 
 
 if __name__ == "__main__":

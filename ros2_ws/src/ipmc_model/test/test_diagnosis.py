@@ -145,6 +145,24 @@ def test_config_refuses_thresholds_out_of_range():
         DiagnosisConfig(family_alpha=0.7)
     with pytest.raises(ValueError, match="hold_min_s"):
         DiagnosisConfig(hold_min_s=0.0)
+    with pytest.raises(ValueError, match="core_direction_channels"):
+        DiagnosisConfig(core_direction_channels=7)
+
+
+def test_the_core_carries_direction_memory_on_the_channels_the_config_asks():
+    # default none; with N channels the identify default's travels on the N fastest, and the
+    # fit gives them weights (the config is written into the report with the rest)
+    from ipmc_model.diagnosis.search import core_model
+    from ipmc_model.hysteresis import DEFAULT_DIRECTION_MEMORY_V
+
+    r = plant_record({}, 60.0, 4)
+    plain = core_model(DiagnosisRecord(r.t_s, r.u_v, r.y_mm, DiagnosisConfig()))
+    assert plain.direction_memory_v == () and plain.n_direction_channels == 0
+    rec = DiagnosisRecord(r.t_s, r.u_v, r.y_mm, DiagnosisConfig(core_direction_channels=1))
+    core = core_model(rec)
+    assert core.direction_memory_v == DEFAULT_DIRECTION_MEMORY_V
+    assert core.n_direction_channels == 1
+    assert core.weights_.size == plain.weights_.size + len(DEFAULT_DIRECTION_MEMORY_V)
 
 
 def test_a_clean_record_has_nothing_and_a_dead_zone_is_found_with_its_width():

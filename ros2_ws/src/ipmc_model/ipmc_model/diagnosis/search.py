@@ -14,7 +14,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.stats import chi2
 
-from ..hysteresis import DEFAULT_MEMORY_TAUS_S, GeneralizedPI
+from ..hysteresis import DEFAULT_DIRECTION_MEMORY_V, DEFAULT_MEMORY_TAUS_S, GeneralizedPI
 from .candidates import (
     CANDIDATES,
     Fitted,
@@ -54,18 +54,22 @@ def core_model(rec: DiagnosisRecord) -> GeneralizedPI:
     blocked free-run CV error kept and converged there; the candidates are the stages it
     leaves out.
 
-    It carries no direction memory: on a fit part of a few thousand samples the direction
-    channels' weights are poorly determined, and refits with a candidate's block (a delay
-    above all) overfit them (held-out error several times the blocked CV's), which would bias
-    the loss differentials the decision rests on. Its plays' thresholds follow each channel's
-    swing (``channel_thresholds``): a play its slower channel barely crosses moves once, a
-    step in time that takes up a drift or a creep the candidates are there to name, and its
-    free run leaves the fit range where the held-out part drives beyond it."""
+    By default it carries no direction memory (``core_direction_channels``): on a fit part of
+    a few thousand samples the direction channels' weights are poorly determined, and refits
+    with a candidate's block (a delay above all) overfit them (held-out error several times
+    the blocked CV's), which would bias the loss differentials the decision rests on. Its
+    plays' thresholds follow each channel's swing (``channel_thresholds``): a play its slower
+    channel barely crosses moves once, a step in time that takes up a drift or a creep the
+    candidates are there to name, and its free run leaves the fit range where the held-out
+    part drives beyond it."""
     taus = tuple(t for t in DEFAULT_MEMORY_TAUS_S if t < rec.config.creep_min_tau_s)
+    channels = rec.config.core_direction_channels
+    direction = ({"direction_memory_v": DEFAULT_DIRECTION_MEMORY_V,
+                  "direction_channels": channels} if channels else {"direction_memory_v": ()})
 
     def fit_from(factor: float) -> GeneralizedPI:
-        return GeneralizedPI(memory_taus_s=taus, delay_s=0.0, dt_s=rec.dt_s,
-                             direction_memory_v=(), max_nfev=CORE_NFEV,
+        return GeneralizedPI(memory_taus_s=taus, delay_s=0.0, dt_s=rec.dt_s, **direction,
+                             max_nfev=CORE_NFEV,
                              channel_thresholds=True,
                              start_tau_factors=(factor,)).fit(rec.u_fit, rec.y_fit)
 
