@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from geometry_msgs.msg import PointStamped, Vector3Stamped
 from rclpy.clock import Clock, ClockType
+from rclpy.duration import Duration
 from rclpy.node import Node
 from std_msgs.msg import Float64
 
@@ -58,6 +59,11 @@ PARAMETERS = {
         True, "exit linger_s after the end; false: answer no further sample (a lock-step "
         "plant then waits) and run until stopped", True),
 }
+
+
+#: Longest wait (s) for the readers to acknowledge the final 0 V: well inside the grace
+#: ``ipmc bringup`` gives a node between SIGINT and SIGKILL (2 s).
+ZERO_ACK_S = 0.5
 
 
 class ExcitationNode(Node):
@@ -136,9 +142,13 @@ class ExcitationNode(Node):
         raise Terminated()
 
     def destroy_node(self) -> None:
-        """Leave the actuator at 0 V on every exit path."""
+        """Leave the actuator at 0 V on every exit path, and wait (at most
+        :data:`ZERO_ACK_S`) until the reliable readers (driver, recorder) have it: a writer
+        destroyed right after its last sample can take it along undelivered, and a recorded
+        run would then end on its last nonzero voltage."""
         try:
             self.pub.publish(Float64(data=0.0))
+            self.pub.wait_for_all_acked(Duration(seconds=ZERO_ACK_S))
         finally:
             super().destroy_node()
 
