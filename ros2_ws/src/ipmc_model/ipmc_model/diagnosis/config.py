@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-#: The core model's channels: the charge and its relaxations of 0.05-4 s.
-MAX_CORE_CHANNELS = 6
+from ..hysteresis import DEFAULT_MEMORY_TAUS_S
 
 
 @dataclass(frozen=True)
@@ -76,9 +75,10 @@ class DiagnosisConfig:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.max_rounds < 1 or self.min_holds < 1 or self.min_steps < 1:
             raise ValueError("max_rounds, min_holds and min_steps must be >= 1")
-        if not 0 <= self.core_direction_channels <= MAX_CORE_CHANNELS:
-            raise ValueError(f"core_direction_channels must be in [0, {MAX_CORE_CHANNELS}] "
-                             f"(the charge and the relaxations below creep_min_tau_s), got "
+        channels = 1 + sum(t < self.creep_min_tau_s for t in DEFAULT_MEMORY_TAUS_S)
+        if not 0 <= self.core_direction_channels <= channels:
+            raise ValueError(f"core_direction_channels must be in [0, {channels}] (the "
+                             f"charge and its relaxations below creep_min_tau_s), got "
                              f"{self.core_direction_channels}")
 
     def as_dict(self) -> dict:
