@@ -75,11 +75,16 @@ class DiagnosisConfig:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.max_rounds < 1 or self.min_holds < 1 or self.min_steps < 1:
             raise ValueError("max_rounds, min_holds and min_steps must be >= 1")
-        channels = 1 + sum(t < self.creep_min_tau_s for t in DEFAULT_MEMORY_TAUS_S)
+        channels = 1 + len(self.core_memory_taus_s)
         if not 0 <= self.core_direction_channels <= channels:
             raise ValueError(f"core_direction_channels must be in [0, {channels}] (the "
                              f"charge and its relaxations below creep_min_tau_s), got "
                              f"{self.core_direction_channels}")
+
+    @property
+    def core_memory_taus_s(self) -> tuple[float, ...]:
+        """The core model's relaxations (s): the model's default bank below creep_min_tau_s."""
+        return tuple(t for t in DEFAULT_MEMORY_TAUS_S if t < self.creep_min_tau_s)
 
     def as_dict(self) -> dict:
         return asdict(self)

@@ -14,7 +14,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.stats import chi2
 
-from ..hysteresis import DEFAULT_DIRECTION_MEMORY_V, DEFAULT_MEMORY_TAUS_S, GeneralizedPI
+from ..hysteresis import DEFAULT_DIRECTION_MEMORY_V, GeneralizedPI
 from .candidates import (
     CANDIDATES,
     Fitted,
@@ -62,7 +62,7 @@ def core_model(rec: DiagnosisRecord) -> GeneralizedPI:
     channel barely crosses moves once, a step in time that takes up a drift or a creep the
     candidates are there to name, and its free run leaves the fit range where the held-out
     part drives beyond it."""
-    taus = tuple(t for t in DEFAULT_MEMORY_TAUS_S if t < rec.config.creep_min_tau_s)
+    taus = rec.config.core_memory_taus_s
     channels = rec.config.core_direction_channels
     direction = ({"direction_memory_v": DEFAULT_DIRECTION_MEMORY_V,
                   "direction_channels": channels} if channels else {"direction_memory_v": ()})
