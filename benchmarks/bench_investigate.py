@@ -245,21 +245,27 @@ def coverage(name: str, seeds: list[int], results: list[CaseResult]) -> str:
 
 
 def twin_of(report: Path, seed: int) -> list[str]:
-    """The clean twin of the investigation in ``report``: its last round's record's voltages
-    through the clean simulated IPMC, diagnosed with that round's experiment parts."""
+    """The clean twin of the investigation in ``report``: the records its last round's
+    diagnosis took (every round's, or the last alone), their voltages through the clean
+    simulated IPMC, diagnosed together with each round's experiment parts."""
     import json
 
     from ipmc_driver.dataio import load_record
     from ipmc_model.diagnosis.experiment import played_parts, read_experiment
 
     summary = json.loads((report / "summary.json").read_text())
-    last = summary["rounds"][-1]
-    rec = load_record(last["record"], gaps=True, notes=[])
-    parts = ()
-    if any(part["effect"] for part in last["experiment"]["parts"]):   # a proposed experiment
-        planned, u_plan, _ = read_experiment(last["experiment"]["path"])
-        parts = played_parts(planned, u_plan, rec.u_v, rec.dt_s)
-    d = clean_diagnosis([("clean twin", rec.u_v, seed, parts)], rec.dt_s)
+    rounds = summary["rounds"]
+    last = json.loads((Path(rounds[-1]["diagnosis"]) / "summary.json").read_text())
+    runs, dt_s = [], 0.0
+    for i, rnd in enumerate(rounds[-len(last["records"]):], start=len(rounds) - len(
+            last["records"])):
+        rec = load_record(rnd["record"], gaps=True, notes=[])
+        parts, dt_s = (), rec.dt_s
+        if any(part["effect"] for part in rnd["experiment"]["parts"]):   # a proposed one
+            planned, u_plan, _ = read_experiment(rnd["experiment"]["path"])
+            parts = played_parts(planned, u_plan, rec.u_v, rec.dt_s)
+        runs.append((f"clean twin of round {i + 1}", rec.u_v, seed + i, parts))
+    d = clean_diagnosis(runs, dt_s)
     after = summary["rmse_after_mm"]
     return [f"{report}: found {', '.join(summary['effects_found']) or 'nothing'}; after "
             f"{after:.4f} mm, clean twin {d.rmse_after_mm:.4f} mm (found there: "

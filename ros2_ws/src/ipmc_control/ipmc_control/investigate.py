@@ -20,9 +20,12 @@ the experiment repeats the probes in its held-out part after an identification i
 that record alone judges every candidate on the excitation that shows it, whereas blocks
 fitted around the earlier record's frozen model would be judged against that model's errors.
 Diagnosing all the records together (``ipmc diagnose --data A --data B``;
-``residual_diagnoser(together=True)``) fits one core model to every excitation instead; with
-the core model as it is, that joint fit extrapolates worse on the experiment's repeated
-probes than the experiment's own fit (``benchmarks/bench_investigate.py --together``).
+``residual_diagnoser(together=True)``) fits one core model to every excitation instead. That
+joint fit is less biased where the core's misfit of the plant's small loops biases a
+parameter fitted with one excitation (a dead zone's width), but its fit rows also carry each
+excitation's own misfit, which a drift block takes up: on the clean simulated IPMC it can
+leave a drift undecided for one more experiment, and it takes about 2.5 times the wall time
+(``benchmarks/bench_investigate.py --seeds 0 1 2 3 [--together]``).
 
 The record comes from a runner: the simulated IPMC in this process (``--in-process``: fast),
 the simulated plant in the lock-step ROS graph (``--sim``: ``ipmc bringup --sim --lockstep
@@ -120,6 +123,8 @@ class Verdicts:
     report_dir: Path
     model_before: Path | None = None
     model_after: Path | None = None
+    #: The records the diagnosis took (every record so far, or the newest alone).
+    records: tuple[str, ...] = ()
 
     def undecided(self) -> tuple[str, ...]:
         """The effects the next experiment is designed to decide."""
@@ -375,7 +380,8 @@ def verdicts_of(d, report_dir: Path, paths: dict) -> Verdicts:
         effects_found=tuple(d.effects_found), rmse_before_mm=float(d.rmse_before_mm),
         rmse_after_mm=float(d.rmse_after_mm), noise_floor_mm=float(d.noise_floor_mm),
         next_experiment=d.next_experiment, report_dir=report_dir,
-        model_before=Path(paths["model_before"]), model_after=Path(paths["model_after"]))
+        model_before=Path(paths["model_before"]), model_after=Path(paths["model_after"]),
+        records=tuple(seg.name for seg in d.segments))
 
 
 def residual_diagnoser(candidates: list[str] | None = None, progress: Progress | None = None,

@@ -132,12 +132,7 @@ def markdown(inv: Investigation, s: dict, out: Path) -> str:
              f"**Effects found: {', '.join(s['effects_found']) or 'none'}.** Held-out free-run "
              f"RMSE {_mm(s['rmse_before_mm'])} mm before, {_mm(s['rmse_after_mm'])} mm after. "
              f"Still undecided: {', '.join(s['undecided']) or 'nothing'}.", "",
-             f"Metric: {s['metric']}.", "",
-             "Each new record is diagnosed on its own, from the core model refitted on its fit "
-             "part: the experiment plays the probes after an identification input and repeats "
-             "them as the held-out part, each copy after a memory wipe (both start from the "
-             "same state), so that record alone judges each effect on the input that shows "
-             "it.", ""]
+             f"Metric: {s['metric']}.", "", _how_diagnosed(inv), ""]
     for r, rs in zip(inv.rounds, s["rounds"], strict=True):
         lines += _round_lines(r, rs, out)
     if s["model_after"]:
@@ -145,6 +140,20 @@ def markdown(inv: Investigation, s: dict, out: Path) -> str:
                   "model_server serves it, ipmc identify --inverse --effects-from inverts it).",
                   ""]
     return "\n".join(lines)
+
+
+def _how_diagnosed(inv: Investigation) -> str:
+    """How the rounds' diagnoses took the records, in one paragraph."""
+    probes = ("the experiment plays the probes after an identification input and repeats them "
+              "as the held-out part, each copy after a memory wipe (both start from the same "
+              "state)")
+    if any(len(r.verdicts.records) > 1 for r in inv.rounds):
+        return ("Each round diagnoses every record so far together: one core model and each "
+                "block fitted on the fit parts of all, each effect judged on the held-out parts "
+                f"of all (on an experiment's, on the probe that shows it): {probes}.")
+    return ("Each new record is diagnosed on its own, from the core model refitted on its fit "
+            f"part: {probes}, so that record alone judges each effect on the input that shows "
+            "it.")
 
 
 def _round_lines(r: InvestigationRound, rs: dict, out: Path) -> list[str]:

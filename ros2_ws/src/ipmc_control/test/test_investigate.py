@@ -62,8 +62,9 @@ def creep_experiment(seconds: float = 100.0) -> Experiment:
     return Experiment(RATE_HZ, 0.7, u, (part,))
 
 
-def stand_in_diagnoser(script: list[tuple[dict, Experiment | None]]):
-    """Round k's diagnosis returns script[k] (outcomes, next experiment); the last repeats."""
+def stand_in_diagnoser(script: list[tuple[dict, Experiment | None]], together: bool = False):
+    """Round k's diagnosis returns script[k] (outcomes, next experiment); the last repeats.
+    It says it took every record so far (``together``) or the newest alone."""
     calls = []
 
     def run(records: list[Recorded], report_dir: Path, known: tuple[str, ...] = ()
@@ -74,7 +75,8 @@ def stand_in_diagnoser(script: list[tuple[dict, Experiment | None]]):
         found = tuple(n for n, o in outcomes.items() if o == "accepted")
         return Verdicts(outcomes, {n: f"{n} was {o}" for n, o in outcomes.items()},
                         {n: {"taus_s": [12.0]} for n in found}, found, 0.02,
-                        0.01 if found else 0.02, 0.005, nxt, report_dir)
+                        0.01 if found else 0.02, 0.005, nxt, report_dir,
+                        records=tuple(str(r.path) for r in records[0 if together else -1:]))
 
     run.calls, run.known = calls, []
     return run
@@ -124,6 +126,17 @@ def test_summary_and_report_tell_each_round(tmp_path):
     assert "## Round 2" in report and "Undecided before it: creep" in report
     assert "holds of 36 s" in report
     assert not HISTORY.search(report + json.dumps(doc))
+    assert "Each new record is diagnosed on its own" in report
+
+
+def test_the_report_says_when_every_record_was_diagnosed_together(tmp_path):
+    inv = investigate(StandInRunner(), _first(tmp_path),
+                      stand_in_diagnoser([UNDECIDED, DECIDED], together=True), tmp_path,
+                      budget_s=600.0)
+    write_investigation(inv, tmp_path)
+    report = (tmp_path / "report.md").read_text()
+    assert "Each round diagnoses every record so far together" in report
+    assert "diagnosed on its own" not in report
 
 
 class LossyRunner(StandInRunner):
@@ -343,7 +356,7 @@ def test_the_diagnoser_takes_the_newest_record_or_every_record_together(tmp_path
         out = tmp_path / f"together_{together}"
         verdicts = residual_diagnoser(["drift"], together=together)(records, out)
         summary = json.loads((out / "summary.json").read_text())
-        assert [r["name"] for r in summary["records"]] == names
+        assert [r["name"] for r in summary["records"]] == names == list(verdicts.records)
         assert verdicts.rmse_before_mm == pytest.approx(summary["rmse_before_mm"])
 
 
