@@ -138,6 +138,22 @@ def test_the_power_of_the_held_out_test_follows_its_standard_error():
 def test_holm_adjusts_as_the_step_down_defines():
     adj = holm({"a": 0.01, "b": 0.04, "c": 0.03})
     assert adj == pytest.approx({"a": 0.03, "c": 0.06, "b": 0.06})
+    assert holm({"a": 0.01, "b": 0.04, "c": 0.03}, {"a": 2.0, "b": 2.0, "c": 2.0}) == adj
+    # weighted: order by p / w, each step's level w / (the weights left) x alpha
+    adj = holm({"a": 0.013, "b": 0.01, "c": 0.5}, {"a": 8.0, "b": 1.0, "c": 1.0})
+    assert adj == pytest.approx({"a": 10 * 0.013 / 8, "b": 0.02, "c": 0.5})
+    with pytest.raises(ValueError, match="positive"):
+        holm({"a": 0.01}, {"a": 0.0})
+
+
+def test_weighted_holm_holds_the_family_wise_error():
+    """Weights fixed before the p-values are drawn: under the null (uniform p-values) the
+    chance that any hypothesis is rejected at 0.05 stays within 0.05."""
+    rng = np.random.default_rng(3)
+    weights = {"a": 25.0, "b": 2.0, "c": 2.0, "d": 1.0}
+    hits = sum(min(holm(dict(zip(weights, rng.uniform(size=4), strict=True)),
+                        weights).values()) <= 0.05 for _ in range(4000))
+    assert 0.03 < hits / 4000 <= 0.05 + 2 * np.sqrt(0.05 * 0.95 / 4000)
 
 
 def test_config_refuses_thresholds_out_of_range():
@@ -151,7 +167,7 @@ def test_config_refuses_thresholds_out_of_range():
 
 def test_the_core_carries_direction_memory_on_the_channels_the_config_asks():
     # default none; with N channels the identify default's travels on the N fastest, and the
-    # fit gives them weights (the config is written into the report with the rest)
+    # fit gives them weights; the config the report writes names the choice
     from ipmc_model.diagnosis.search import core_model
     from ipmc_model.hysteresis import DEFAULT_DIRECTION_MEMORY_V
 
@@ -163,6 +179,7 @@ def test_the_core_carries_direction_memory_on_the_channels_the_config_asks():
     assert core.direction_memory_v == DEFAULT_DIRECTION_MEMORY_V
     assert core.n_direction_channels == 1
     assert core.weights_.size == plain.weights_.size + len(DEFAULT_DIRECTION_MEMORY_V)
+    assert rec.config.as_dict()["core_direction_channels"] == 1
 
 
 def test_a_clean_record_has_nothing_and_a_dead_zone_is_found_with_its_width():

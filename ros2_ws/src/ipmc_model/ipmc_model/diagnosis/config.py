@@ -13,7 +13,8 @@ class DiagnosisConfig:
 
     #: The first share of the record fits, the rest judges (free run from the record's start).
     fit_share: float = 0.7
-    #: Family-wise error of one round's tests, held by Holm's step-down over its candidates.
+    #: Family-wise error of one round's tests, held by Holm's weighted step-down over its
+    #: candidates.
     family_alpha: float = 0.05
     #: A block is material when it cuts the held-out mean squared error, both about each
     #: record's held-out mean and as it is, by at least this share of the sensor's noise

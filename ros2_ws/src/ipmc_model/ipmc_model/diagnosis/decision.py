@@ -11,8 +11,11 @@ fit rows) lowers the held-out free-run squared error significantly and materiall
   small-sample factor, one-sided against Student's t; the bandwidth covers the
   differential's own autocorrelation (a free-run error is slow, so its samples are far from
   independent); the held-out offset, one draw per record, cannot be tested;
-* the round's p-values are adjusted by Holm's step-down, holding the family-wise error of
-  the candidates the round may accept (the testable ones) at ``family_alpha``;
+* the round's p-values are adjusted by Holm's weighted step-down, holding the family-wise
+  error of the candidates the round may accept (the testable ones) at ``family_alpha``; each
+  candidate's weight is its z on the fit rows (the square root of their likelihood ratio),
+  fixed without the held-out rows: alpha goes where the fit rows see a block, and a
+  candidate they barely support does not halve the level of one they show clearly;
 * the mean gain must be at least ``material_noise_share`` times the noise floor squared,
   both that of the errors about their means (what the test found significant: a block
   whose tested gain is below the margin is not material however large its untested offset
@@ -21,7 +24,7 @@ fit rows) lowers the held-out free-run squared error significantly and materiall
 A candidate the rule does not accept, whose block the fit rows support and whose held-out
 gain has the right sign, is undecided rather than rejected when the held-out rows are too
 few to decide it: when the test would pass with less than ``min_power`` probability at the
-gain the fit rows show (:func:`power`, at Holm's first level). A record with its probe
+gain the fit rows show (:func:`power`, at its first Holm level). A record with its probe
 decides it.
 
 Of the candidates that pass, the round accepts the one with the largest mean gain; the next
@@ -108,13 +111,21 @@ def power(test: LossTest, expected_gain_mm2: float, alpha: float) -> float:
     return float(stats.norm.sf(stats.norm.isf(alpha) - expected_gain_mm2 / se))
 
 
-def holm(p_values: dict[str, float]) -> dict[str, float]:
-    """Holm's step-down adjusted p-values (reject where adjusted p <= alpha)."""
-    order = sorted(p_values, key=p_values.get)
-    m, running, out = len(order), 0.0, {}
-    for i, name in enumerate(order):
-        running = max(running, min(1.0, (m - i) * p_values[name]))
+def holm(p_values: dict[str, float], weights: dict[str, float] | None = None
+         ) -> dict[str, float]:
+    """Holm's step-down adjusted p-values (reject where adjusted p <= alpha), weighted (Holm
+    1979): each hypothesis gets the share ``w_i / sum(w)`` of the alpha left at its step, in
+    the order of ``p_i / w_i``; equal weights (None) give the plain procedure. Weights fixed
+    independently of the p-values keep the family-wise error at alpha."""
+    w = {n: 1.0 for n in p_values} if weights is None else {n: weights[n] for n in p_values}
+    if any(not v > 0 for v in w.values()):
+        raise ValueError(f"Holm's weights must be positive: {w}")
+    order = sorted(p_values, key=lambda n: p_values[n] / w[n])
+    left, running, out = sum(w.values()), 0.0, {}
+    for name in order:
+        running = max(running, min(1.0, left * p_values[name] / w[name]))
         out[name] = running
+        left -= w[name]
     return out
 
 

@@ -179,16 +179,21 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
     # the family is the candidates the round may accept and the fit rows support; rivals
     # (not testable) are tested beside it
     screened = {n: ev for n, (_, ev) in tested.items() if ev.screen.passed}
-    p_adj = holm({n: ev.test.p_value for n, ev in screened.items() if n not in untestable})
+    # alpha spread over the family in proportion to each block's z on the fit rows
+    # (sqrt of its likelihood ratio): fixed before the held-out rows are looked at
+    weights = {n: math.sqrt(ev.screen.likelihood_ratio) for n, ev in screened.items()
+               if n not in untestable}
+    p_adj = holm({n: screened[n].test.p_value for n in weights}, weights)
     p_adj.update({n: ev.test.p_value for n, ev in screened.items() if n in untestable})
     passing = [n for n in screened if passes(tested[n][1].test, p_adj[n], cfg.family_alpha)]
     best = max(passing, key=lambda n: tested[n][1].test.mean_gain_mm2, default=None)
-    family = sum(n not in untestable for n in p_adj)   # Holm's family: testable only
+    # a candidate's share of the family's alpha at Holm's first step
+    share = {n: w / sum(weights.values()) for n, w in weights.items()}
     for name, (_, ev) in tested.items():
         ev = replace(ev, p_holm=p_adj.get(name, 1.0))
         outcome, reason = _verdict(name, ev, best, passing, cfg.family_alpha, untestable)
         res = CandidateResult(name, outcome, reason, number, ev)
-        short = (_too_few(res, cfg, family, rec, current)
+        short = (_too_few(res, cfg, share.get(name, 1.0), rec, current)
                  if outcome is Outcome.REJECTED and name not in passing else None)
         results[name] = (replace(res, outcome=Outcome.NOT_TESTABLE, reason=f"{short} ({reason})")
                          if short else res)
@@ -198,7 +203,7 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
     return rnd, (tested[accepted][0] if accepted else None)
 
 
-def _too_few(res: CandidateResult, cfg: DiagnosisConfig, family: int, rec: DiagnosisRecord,
+def _too_few(res: CandidateResult, cfg: DiagnosisConfig, share: float, rec: DiagnosisRecord,
              current: GeneralizedPI) -> str | None:
     """Why the held-out rows cannot decide a block the fit rows support (the test's power
     at the gain they show is below ``min_power``), if they cannot and a probe can; None if
@@ -207,7 +212,7 @@ def _too_few(res: CandidateResult, cfg: DiagnosisConfig, family: int, rec: Diagn
     # a gain below the materiality margin is rejected however many rows there were
     if not (sc.passed and t.mean_gain_mm2 > 0 and sc.mean_gain_mm2 >= t.margin_mm2):
         return None
-    level = cfg.family_alpha / max(1, family)   # Holm's first step
+    level = cfg.family_alpha * share   # its level at Holm's first step
     pw = power(t, sc.mean_gain_mm2, level)
     if pw >= cfg.min_power or CANDIDATES[res.name].probe(rec, current, res) is None:
         return None
