@@ -400,10 +400,10 @@ def test_a_diagnosis_on_two_workers_is_the_one_in_process():
 
 
 def test_a_creep_the_held_out_rows_are_too_few_to_decide_is_undecided_with_its_probe():
-    """A 20 s creep of -0.1 mm/V on 3-10 s holds: the fit rows support the block, but 72 s
+    """A 20 s creep of -0.08 mm/V on 3-10 s holds: the fit rows support the block, but 72 s
     of held-out rows cannot make the test pass at the gain they show; undecided, not
-    rejected, and the next experiment holds for it."""
-    fx = {"creep": {"tau_s": 20.0, "gain_mm_per_v": -0.1}}
+    rejected, and the next experiment holds for it (at -0.1 mm/V these rows accept it)."""
+    fx = {"creep": {"tau_s": 20.0, "gain_mm_per_v": -0.08}}
     d = diagnose(plant_record(fx, 240.0, 29, holds=True), candidates=["creep", "drift"])
     creep = next(r for r in d.candidates if r.name == "creep")
     assert creep.outcome is Outcome.NOT_TESTABLE and "too few to decide" in creep.reason
@@ -492,13 +492,16 @@ def test_creep_around_a_given_model_with_slow_input_memory_is_one_relaxation():
     assert len(p["taus_s"]) == 1 and p["interval"] == "whole record"
     assert p["tau_ci_s"][0] < 20.0 < p["tau_ci_s"][1]
     assert p["gain_ci_mm_per_v"][0] < -0.3 < p["gain_ci_mm_per_v"][1]
-    # Holm's family is the testable candidates the fit rows support: creep's p (the smallest)
-    # is multiplied by their number alone
+    # Holm's family is the testable candidates the fit rows support, each weighted by its z
+    # there (sqrt of the likelihood ratio): creep's p (the first step) is multiplied by the
+    # family's weights over its own
     ev = next(r for r in d.rounds[0].results if r.name == "creep").evidence
-    family = [r for r in d.rounds[0].results if r.evidence is not None
-              and r.outcome is not Outcome.NOT_TESTABLE and r.evidence.screen.passed]
+    family = {r.name: r.evidence for r in d.rounds[0].results if r.evidence is not None
+              and r.outcome is not Outcome.NOT_TESTABLE and r.evidence.screen.passed}
     assert ev.screen.passed and len(family) < len(d.rounds[0].results)
-    assert ev.p_holm == pytest.approx(min(1.0, len(family) * ev.test.p_value))
+    w = {n: np.sqrt(e.screen.likelihood_ratio) for n, e in family.items()}
+    assert min(family, key=lambda n: family[n].test.p_value / w[n]) == "creep"
+    assert ev.p_holm == pytest.approx(min(1.0, sum(w.values()) * ev.test.p_value / w["creep"]))
     clean = diagnose(plant_record({}, 240.0, 5, holds=True), model=model)
     assert clean.effects_found == []
 
