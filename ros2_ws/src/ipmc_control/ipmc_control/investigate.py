@@ -23,9 +23,8 @@ Diagnosing all the records together (``ipmc diagnose --data A --data B``;
 ``residual_diagnoser(together=True)``) fits one core model to every excitation instead. That
 joint fit is less biased where the core's misfit of the plant's small loops biases a
 parameter fitted with one excitation (a dead zone's width), but its fit rows also carry each
-excitation's own misfit, which a drift block takes up: on the clean simulated IPMC it can
-leave a drift undecided for one more experiment, and it takes about 2.5 times the wall time
-(``benchmarks/bench_investigate.py --seeds 0 1 2 3 [--together]``).
+excitation's own misfit, which a drift block can take up, and every round refits every
+record (``benchmarks/bench_investigate.py --seeds 0 1 2 3 [--together]`` compares them).
 
 The record comes from a runner: the simulated IPMC in this process (``--in-process``: fast),
 the simulated plant in the lock-step ROS graph (``--sim``: ``ipmc bringup --sim --lockstep
