@@ -247,7 +247,8 @@ def coverage(name: str, seeds: list[int], results: list[CaseResult]) -> str:
 def twin_of(report: Path, seed: int) -> list[str]:
     """The clean twin of the investigation in ``report``: the records its last round's
     diagnosis took (every round's, or the last alone), their voltages through the clean
-    simulated IPMC, diagnosed together with each round's experiment parts."""
+    simulated IPMC (noise seeded ``seed`` plus the round's index, as :func:`clean_twin`),
+    diagnosed together with each round's experiment parts."""
     import json
 
     from ipmc_driver.dataio import load_record
@@ -256,16 +257,16 @@ def twin_of(report: Path, seed: int) -> list[str]:
     summary = json.loads((report / "summary.json").read_text())
     rounds = summary["rounds"]
     last = json.loads((Path(rounds[-1]["diagnosis"]) / "summary.json").read_text())
-    runs, dt_s = [], 0.0
-    for i, rnd in enumerate(rounds[-len(last["records"]):], start=len(rounds) - len(
-            last["records"])):
+    runs = []
+    for i in range(len(rounds) - len(last["records"]), len(rounds)):
+        rnd = rounds[i]
         rec = load_record(rnd["record"], gaps=True, notes=[])
-        parts, dt_s = (), rec.dt_s
+        parts = ()
         if any(part["effect"] for part in rnd["experiment"]["parts"]):   # a proposed one
             planned, u_plan, _ = read_experiment(rnd["experiment"]["path"])
             parts = played_parts(planned, u_plan, rec.u_v, rec.dt_s)
         runs.append((f"clean twin of round {i + 1}", rec.u_v, seed + i, parts))
-    d = clean_diagnosis(runs, dt_s)
+    d = clean_diagnosis(runs, rec.dt_s)
     after = summary["rmse_after_mm"]
     return [f"{report}: found {', '.join(summary['effects_found']) or 'nothing'}; after "
             f"{after:.4f} mm, clean twin {d.rmse_after_mm:.4f} mm (found there: "

@@ -179,7 +179,12 @@ def test_the_core_carries_direction_memory_on_the_channels_the_config_asks():
     assert core.direction_memory_v == DEFAULT_DIRECTION_MEMORY_V
     assert core.n_direction_channels == 1
     assert core.weights_.size == plain.weights_.size + len(DEFAULT_DIRECTION_MEMORY_V)
-    assert rec.config.as_dict()["core_direction_channels"] == 1
+    from ipmc_model.diagnosis.report import summary_of
+    from ipmc_model.diagnosis.results import Diagnosis
+
+    d = Diagnosis(rec.t_s, rec.u_v, rec.y_mm, rec.held_rows, rec.segments, rec.config, False,
+                  core, core)
+    assert summary_of(d, {})["config"]["core_direction_channels"] == 1
 
 
 def test_a_clean_record_has_nothing_and_a_dead_zone_is_found_with_its_width():

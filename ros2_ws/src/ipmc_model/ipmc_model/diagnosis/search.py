@@ -188,7 +188,8 @@ def run_round(number: int, current: GeneralizedPI, rec: DiagnosisRecord, names, 
     passing = [n for n in screened if passes(tested[n][1].test, p_adj[n], cfg.family_alpha)]
     best = max(passing, key=lambda n: tested[n][1].test.mean_gain_mm2, default=None)
     # a candidate's share of the family's alpha at Holm's first step
-    share = {n: w / sum(weights.values()) for n, w in weights.items()}
+    total = sum(weights.values())
+    share = {n: w / total for n, w in weights.items()}
     for name, (_, ev) in tested.items():
         ev = replace(ev, p_holm=p_adj.get(name, 1.0))
         outcome, reason = _verdict(name, ev, best, passing, cfg.family_alpha, untestable)
