@@ -228,25 +228,13 @@ def hinge_slope(z: np.ndarray, knots: np.ndarray, coef: np.ndarray) -> np.ndarra
     return coef[0] + (z[:, None] > knots[None, :]).astype(float) @ coef[1:]
 
 
-def hinge_map(z: np.ndarray, knots: np.ndarray, coef: np.ndarray,
-              z_range: tuple[float, float] = (-math.inf, math.inf),
-              edge_slopes: tuple[float, float] | None = None) -> np.ndarray:
-    """The piecewise-linear map ``g(z)``, continued beyond ``z_range`` (the range of z it was
-    fitted on) straight at ``edge_slopes`` (below, above; None: its slope at that range's
-    edge): no data fixes the slope change at a hinge beyond it, so its coefficient is
-    whatever the optimiser left there, and a free run that leaves the range would follow it."""
-    lo, hi = z_range
-    if lo == -math.inf and hi == math.inf:
-        return hinge_basis(z, knots) @ coef
-    zc = np.clip(z, lo, hi)
-    g = hinge_basis(zc, knots) @ coef
-    out = zc != z   # the slopes only where the run left the range (a free run's hot path)
-    if edge_slopes is None:
-        slope = hinge_slope(zc[out], knots, coef)
-    else:
-        slope = np.where(z[out] < lo, edge_slopes[0], edge_slopes[1])
-    g[out] += slope * (z[out] - zc[out])
-    return g
+def _beyond_counts(z: np.ndarray, rows: np.ndarray, knots: np.ndarray, block_rows: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Independent samples (:func:`independent_samples`) of z above and below each knot."""
+    def count(beyond: np.ndarray) -> np.ndarray:
+        return np.array([independent_samples(rows[b], block_rows) for b in beyond.T])
+
+    return count(z[:, None] > knots[None, :]), count(z[:, None] < knots[None, :])
 
 
 def determined_edge_slopes(z: np.ndarray, rows: np.ndarray, knots: np.ndarray,
@@ -259,14 +247,75 @@ def determined_edge_slopes(z: np.ndarray, rows: np.ndarray, knots: np.ndarray,
     (the joint fit moves z after the hinges are placed, and one can end just inside the
     range's end) has a slope change fitted to that visit, hundreds of mm per unit on a
     handful of rows, which a run beyond the range would follow."""
-    def count(beyond: np.ndarray) -> np.ndarray:
-        return np.array([independent_samples(rows[b], block_rows) for b in beyond.T])
-
-    above = count(z[:, None] > knots[None, :])
-    below = count(z[:, None] < knots[None, :])
+    above, below = _beyond_counts(z, rows, knots, block_rows)
     upper = float(coef[0] + coef[1:][above >= min_samples].sum())
     lower = float(coef[0] + coef[1:][below < min_samples].sum())
     return lower, upper
+
+
+class HingeMap:
+    """The output map as a continuous piecewise-linear function of z (hinges at the knots)."""
+
+    name = "linear"
+    basis = staticmethod(hinge_basis)
+    slope = staticmethod(hinge_slope)
+    edge_slopes = staticmethod(determined_edge_slopes)
+
+
+class QuadraticSplineMap:
+    """The output map as a quadratic spline of z: ``c_0 z + sum_j c_j max(z - k_j, 0)^2``,
+    its slope continuous and piecewise linear. An IPMC's bending stiffens smoothly with the
+    strain (the negative side of the simulated strip by 3 per V); hinges approximate that
+    curvature with kinks, and near 0 V a kink trades with a dead zone's width."""
+
+    name = "quadratic"
+
+    @staticmethod
+    def basis(z: np.ndarray, knots: np.ndarray) -> np.ndarray:
+        return np.column_stack([z, np.maximum(z[:, None] - knots[None, :], 0.0) ** 2])
+
+    @staticmethod
+    def slope(z: np.ndarray, knots: np.ndarray, coef: np.ndarray) -> np.ndarray:
+        return coef[0] + 2.0 * np.maximum(z[:, None] - knots[None, :], 0.0) @ coef[1:]
+
+    @classmethod
+    def edge_slopes(cls, z: np.ndarray, rows: np.ndarray, knots: np.ndarray, coef: np.ndarray,
+                    block_rows: float, min_samples: int) -> tuple[float, float]:
+        """The slopes beyond the range of ``z``: the spline's slope at the range's ends, or,
+        as :func:`determined_edge_slopes`, at the outermost knot beyond which z goes in
+        fewer than ``min_samples`` independent samples (its curvature there is fitted to a
+        visit or two)."""
+        above, below = _beyond_counts(z, rows, knots, block_rows)
+        hi = min([float(z.max())] + list(knots[above < min_samples]))
+        lo = max([float(z.min())] + list(knots[below < min_samples]))
+        s = cls.slope(np.array([lo, hi]), knots, coef)
+        return float(s[0]), float(s[1])
+
+
+#: The output maps by name (``GeneralizedPI(map_basis=...)``).
+MAP_BASES = {m.name: m for m in (HingeMap, QuadraticSplineMap)}
+
+
+def hinge_map(z: np.ndarray, knots: np.ndarray, coef: np.ndarray,
+              z_range: tuple[float, float] = (-math.inf, math.inf),
+              edge_slopes: tuple[float, float] | None = None, basis=HingeMap) -> np.ndarray:
+    """The map ``g(z)`` of ``basis`` (:data:`MAP_BASES`), continued beyond ``z_range`` (the
+    range of z it was fitted on) straight at ``edge_slopes`` (below, above; None: its slope
+    at that range's edge): no data fixes the slope change at a hinge beyond it, so its
+    coefficient is whatever the optimiser left there, and a free run that leaves the range
+    would follow it."""
+    lo, hi = z_range
+    if lo == -math.inf and hi == math.inf:
+        return basis.basis(z, knots) @ coef
+    zc = np.clip(z, lo, hi)
+    g = basis.basis(zc, knots) @ coef
+    out = zc != z   # the slopes only where the run left the range (a free run's hot path)
+    if edge_slopes is None:
+        slope = basis.slope(zc[out], knots, coef)
+    else:
+        slope = np.where(z[out] < lo, edge_slopes[0], edge_slopes[1])
+    g[out] += slope * (z[out] - zc[out])
+    return g
 
 
 def delayed(u: np.ndarray, samples: int, history=None) -> np.ndarray:
@@ -348,7 +397,11 @@ class GeneralizedPI:
         Each play channel's thresholds from its own swing on the identification record
         (:meth:`_play_thresholds`) instead of all from max |u|.
     n_knots : int
-        Hinges of the output map.
+        Knots of the output map.
+    map_basis : str
+        The output map between knots (:data:`MAP_BASES`): ``"linear"`` (hinges) or
+        ``"quadratic"`` (a quadratic spline, slope continuous: a bending that stiffens
+        smoothly).
     rate_limit : bool
         Fit the ion-current limit of stage 1 (False: v = u, no charging stage).
     alphas : sequence of float
@@ -421,7 +474,7 @@ class GeneralizedPI:
                  direction_memory_v=DEFAULT_DIRECTION_MEMORY_V, direction_channels: int = 3,
                  start_tau_factors=INITIAL_TAU_FACTORS, warm_start: bool = False,
                  output_rate: bool = False, channel_thresholds: bool = False,
-                 progress=None):
+                 map_basis: str = "linear", progress=None):
         self.memory_taus_s = tuple(float(t) for t in memory_taus_s)
         self.play_channels = play_channels
         self.threshold_shares = tuple(float(s) for s in threshold_shares)
@@ -445,6 +498,7 @@ class GeneralizedPI:
         self.warm_start = bool(warm_start)
         self.output_rate = bool(output_rate)
         self.channel_thresholds = bool(channel_thresholds)
+        self.map_basis = str(map_basis)
         self.progress = progress
         self.weights_ = None
         self.map_range_ = (-math.inf, math.inf)
@@ -456,6 +510,11 @@ class GeneralizedPI:
         self.negative_gain_, self.limit_mm_ = 1.0, math.inf
         self.drift_gain_per_s_, self.drift_offset_mm_per_s_ = 0.0, 0.0
         self.output_coef_ = np.zeros(self.n_output_channels)
+
+    @property
+    def _map(self):
+        """The output map's basis (:data:`MAP_BASES`)."""
+        return MAP_BASES[self.map_basis]
 
     @property
     def n_output_channels(self) -> int:
@@ -547,6 +606,9 @@ class GeneralizedPI:
     def _check_params(self, n: int) -> None:
         if int(self.play_channels) < 1 or int(self.n_knots) < 0 or int(self.n_folds) < 2:
             raise ValueError("play_channels must be >= 1, n_knots >= 0 and n_folds >= 2")
+        if self.map_basis not in MAP_BASES:
+            raise ValueError(f"map_basis must be one of {sorted(MAP_BASES)}, got "
+                             f"{self.map_basis!r}")
         if not self.threshold_shares or min(self.threshold_shares) <= 0:
             raise ValueError("threshold_shares must be positive shares of max |u|")
         if not (self.dt_s > 0 and math.isfinite(self.dt_s)):
@@ -665,7 +727,7 @@ class GeneralizedPI:
         theta0, bounds = self._initial_theta(u, span_s)
         _, theta0, self.feature_mean_, self.feature_scale_, w0, self.knots_ = \
             self._best_start(u, y, theta0, bounds)
-        coef0 = np.zeros(int(self.n_knots) + 1 + (2 if self.drift else 0)
+        coef0 = np.zeros(self.knots_.size + 1 + (2 if self.drift else 0)
                          + self.n_output_channels)
         coef0[0] = 1.0
         x = self._joint_fit(u, y, np.concatenate([theta0, w0, coef0]), bounds,
@@ -697,7 +759,7 @@ class GeneralizedPI:
         w = np.linalg.lstsq(A, y, rcond=None)[0]
         z = A @ w
         knots = place_knots(z, int(self.n_knots))
-        B = np.column_stack([hinge_basis(z, knots), np.ones(y.size)])
+        B = np.column_stack([self._map.basis(z, knots), np.ones(y.size)])
         resid = y - B @ np.linalg.lstsq(B, y, rcond=None)[0]
         return float(np.var(resid)), theta, mean, scale, w, knots
 
@@ -739,7 +801,7 @@ class GeneralizedPI:
         e = (self._output_of(z, X) - y)[seen]
         self.train_rmse_ = float(np.sqrt(np.mean(e ** 2)))
         block_rows = e.size / effective_samples(e) if np.ptp(e) > 0 else 1.0
-        self.map_edge_slopes_ = determined_edge_slopes(
+        self.map_edge_slopes_ = self._map.edge_slopes(
             z[seen], np.flatnonzero(seen), self.knots_, self.map_coef_, block_rows,
             EDGE_INDEPENDENT_SAMPLES)
 
@@ -749,7 +811,7 @@ class GeneralizedPI:
         on the feature weights (not on the constant)."""
         rows = np.arange(0, u.size, max(1, int(self.row_step)))
         rows = rows[np.isfinite(y[rows])]
-        p, kn = self.feature_mean_.size + 1, self.knots_
+        p, kn, basis = self.feature_mean_.size + 1, self.knots_, self._map
         k = kn.size + 1
         t = rows * self.dt_s
         ridge = math.sqrt(alpha * rows.size)
@@ -770,7 +832,7 @@ class GeneralizedPI:
             return x[:2], x[2:2 + p], x[2 + p:2 + p + k], g, o, x[x.size - n_out:]
 
         def output(A, X, w, c, g, o, e):
-            return (hinge_basis(A @ w, kn) @ c) * (1.0 + g * t) + o * t + X @ e
+            return (basis.basis(A @ w, kn) @ c) * (1.0 + g * t) + o * t + X @ e
 
         def residual(x):
             th, w, c, g, o, e = split(x)
@@ -780,7 +842,7 @@ class GeneralizedPI:
             th, w, c, g, o, e = split(x)
             A, X = design(th)
             z = A @ w
-            base = hinge_basis(z, kn) @ c
+            base = basis.basis(z, kn) @ c
             scale = (1.0 + g * t)[:, None]
             now = output(A, X, w, c, g, o, e)
             cols = []
@@ -791,8 +853,8 @@ class GeneralizedPI:
                 cols.append((output(A2, X2, w, c, g, o, e) - now) / 1e-4)
             cols += [np.zeros(rows.size)] * (2 - n_theta)
             drift = [np.column_stack([base * t, t])] if self.drift else []
-            top = np.hstack([np.column_stack(cols), A * hinge_slope(z, kn, c)[:, None] * scale,
-                             hinge_basis(z, kn) * scale] + drift + [X])
+            top = np.hstack([np.column_stack(cols), A * basis.slope(z, kn, c)[:, None] * scale,
+                             basis.basis(z, kn) * scale] + drift + [X])
             bottom = np.zeros((p - 1, top.shape[1]))
             bottom[:, 2:p + 1] = ridge * np.eye(p - 1)
             return np.vstack([top, bottom])
@@ -822,8 +884,8 @@ class GeneralizedPI:
             t = np.arange(u.size) * self.dt_s
             y = (y - o * t) / np.maximum(1.0 + g * t, 1e-3)
         z = A @ w
-        slope = hinge_slope(z, self.knots_, c)
-        target = y - hinge_basis(z, self.knots_) @ c + slope * z
+        slope = self._map.slope(z, self.knots_, c)
+        target = y - self._map.basis(z, self.knots_) @ c + slope * z
         obs = np.isfinite(y)
         # folds of equal measured rows, each contiguous in time
         at = np.flatnonzero(obs)
@@ -840,7 +902,7 @@ class GeneralizedPI:
             for i, alpha in enumerate(self.alphas):
                 # the constant is penalised too, lightly: alpha * n is tiny beside its s^2
                 wa = Vt.T @ (s / (s ** 2 + alpha * train.sum()) * proj)
-                sse[i] += np.sum((hinge_basis(A[a:b][held] @ wa, self.knots_) @ c
+                sse[i] += np.sum((self._map.basis(A[a:b][held] @ wa, self.knots_) @ c
                                   - y[a:b][held]) ** 2)
         rmse = np.sqrt(sse / at.size)
         best = int(np.argmin(rmse))
@@ -859,7 +921,7 @@ class GeneralizedPI:
         """The free run's output (mm) from the map's input ``z`` and the output channels."""
         added = X @ self.output_coef_ if self.n_output_channels else 0.0
         return self.output_stage(hinge_map(z, self.knots_, self.map_coef_, self.map_range_,
-                                           self.map_edge_slopes_),
+                                           self.map_edge_slopes_, self._map),
                                  np.arange(z.size) * self.dt_s, added)
 
     def predict(self, u, y=None) -> np.ndarray:
@@ -905,7 +967,7 @@ class GeneralizedPI:
                 "direction_channels": self.direction_channels,
                 "start_tau_factors": list(self.start_tau_factors),
                 "warm_start": self.warm_start, "output_rate": self.output_rate,
-                "channel_thresholds": self.channel_thresholds}
+                "channel_thresholds": self.channel_thresholds, "map_basis": self.map_basis}
 
 
 class GpiStepper:
@@ -979,7 +1041,7 @@ class GpiStepper:
         if r:
             added = added + m.output_coef_[0] * m._charging_current(n.v, self.state.v)
         return m.output_stage(hinge_map(z, m.knots_, m.map_coef_, m.map_range_,
-                                        m.map_edge_slopes_),
+                                        m.map_edge_slopes_, m._map),
                               self.state.k * m.dt_s, added)
 
     def outputs(self, x_candidates) -> np.ndarray:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from ..hysteresis import DEFAULT_MEMORY_TAUS_S
+from ..hysteresis import DEFAULT_MEMORY_TAUS_S, MAP_BASES
 
 
 @dataclass(frozen=True)
@@ -58,6 +58,10 @@ class DiagnosisConfig:
     #: are poorly determined, and which records a core with it misfits (a held-out error
     #: twice the core's without it on some) changes with the seed, not with the plant.
     core_direction_channels: int = 0
+    #: The core model's output map between its knots: a quadratic spline, because an IPMC's
+    #: bending stiffens smoothly with strain and piecewise-linear hinges approximate that
+    #: curvature with kinks, which near 0 V trade with a dead zone's width.
+    core_map: str = "quadratic"
 
     def __post_init__(self) -> None:
         if not 0.3 <= self.fit_share <= 0.9:
@@ -81,6 +85,10 @@ class DiagnosisConfig:
             raise ValueError(f"core_direction_channels must be in [0, {channels}] (the "
                              f"charge and its relaxations below creep_min_tau_s), got "
                              f"{self.core_direction_channels}")
+
+        if self.core_map not in MAP_BASES:
+            raise ValueError(f"core_map must be one of {sorted(MAP_BASES)}, got "
+                             f"{self.core_map!r}")
 
     @property
     def core_memory_taus_s(self) -> tuple[float, ...]:

@@ -61,7 +61,8 @@ def core_model(rec: DiagnosisRecord) -> GeneralizedPI:
     plays' thresholds follow each channel's swing (``channel_thresholds``): a play its slower
     channel barely crosses moves once, a step in time that takes up a drift or a creep the
     candidates are there to name, and its free run leaves the fit range where the held-out
-    part drives beyond it."""
+    part drives beyond it. Its output map is ``core_map`` (a quadratic spline: the bending's
+    smooth stiffening, which hinges would meet with kinks a dead zone could take up)."""
     taus = rec.config.core_memory_taus_s
     channels = rec.config.core_direction_channels
     direction = ({"direction_memory_v": DEFAULT_DIRECTION_MEMORY_V,
@@ -69,7 +70,7 @@ def core_model(rec: DiagnosisRecord) -> GeneralizedPI:
 
     def fit_from(factor: float) -> GeneralizedPI:
         return GeneralizedPI(memory_taus_s=taus, delay_s=0.0, dt_s=rec.dt_s, **direction,
-                             max_nfev=CORE_NFEV,
+                             max_nfev=CORE_NFEV, map_basis=rec.config.core_map,
                              channel_thresholds=True,
                              start_tau_factors=(factor,)).fit(rec.u_fit, rec.y_fit)
 
