@@ -264,9 +264,11 @@ class HingeMap:
 
 class QuadraticSplineMap:
     """The output map as a quadratic spline of z: ``c_0 z + sum_j c_j max(z - k_j, 0)^2``,
-    its slope continuous and piecewise linear. An IPMC's bending stiffens smoothly with the
-    strain (the negative side of the simulated strip by 3 per V); hinges approximate that
-    curvature with kinks, and near 0 V a kink trades with a dead zone's width."""
+    its slope continuous and piecewise linear; below the lowest knot (a tenth of the fit's
+    rows at the default knots) it is straight, as the hinges' lowest segment. An IPMC's
+    bending stiffens smoothly with the strain (the negative side of the simulated strip by 3
+    per V); hinges approximate that curvature with kinks, and near 0 V a kink trades with a
+    dead zone's width."""
 
     name = "quadratic"
 

@@ -163,6 +163,8 @@ def test_config_refuses_thresholds_out_of_range():
         DiagnosisConfig(hold_min_s=0.0)
     with pytest.raises(ValueError, match="core_direction_channels"):
         DiagnosisConfig(core_direction_channels=7)
+    with pytest.raises(ValueError, match="core_map must be one of"):
+        DiagnosisConfig(core_map="cubic")
 
 
 def test_the_core_carries_direction_memory_on_the_channels_the_config_asks():
@@ -174,6 +176,9 @@ def test_the_core_carries_direction_memory_on_the_channels_the_config_asks():
     r = plant_record({}, 60.0, 4)
     plain = core_model(DiagnosisRecord(r.t_s, r.u_v, r.y_mm, DiagnosisConfig()))
     assert plain.direction_memory_v == () and plain.n_direction_channels == 0
+    assert plain.map_basis == "linear"   # DiagnosisConfig.core_map
+    spline = DiagnosisRecord(r.t_s, r.u_v, r.y_mm, DiagnosisConfig(core_map="quadratic"))
+    assert core_model(spline).map_basis == "quadratic"
     rec = DiagnosisRecord(r.t_s, r.u_v, r.y_mm, DiagnosisConfig(core_direction_channels=1))
     core = core_model(rec)
     assert core.direction_memory_v == DEFAULT_DIRECTION_MEMORY_V

@@ -470,3 +470,77 @@ def test_channel_thresholds_let_every_play_reverse_and_survive_the_file(tmp_path
     assert loaded.channel_thresholds and np.allclose(loaded.simulate(u), m.simulate(u))
     again = GeneralizedPI(**loaded.get_params()).fit(u[:4000], y[:4000])
     assert np.allclose(again.thresholds_, m.thresholds_)
+
+
+def test_the_quadratic_spline_holds_a_stiffening_bend_the_hinges_meet_with_kinks():
+    """A bending that stiffens on one side (y = z + 3 z^2 below 0, as the simulated strip's
+    negative side) is in the quadratic spline's span (its curvature changes at each knot; a
+    knot at the lowest z gives it curvature from there on) and not in the hinges' with the
+    same knots; the spline's slope is its basis's derivative."""
+    from ipmc_model.hysteresis import MAP_BASES
+
+    z = np.linspace(-1.0, 1.0, 2001)
+    y = z + 3.0 * np.minimum(z, 0.0) ** 2
+    knots = np.array([-1.0, -0.5, 0.0, 0.5])
+
+    def residual(basis):
+        B = np.column_stack([basis.basis(z, knots), np.ones(z.size)])
+        return y - B @ np.linalg.lstsq(B, y, rcond=None)[0]
+
+    quad, hinge = MAP_BASES["quadratic"], MAP_BASES["linear"]
+    assert np.abs(residual(quad)).max() < 1e-9
+    assert np.abs(residual(hinge)).max() > 0.03   # the chord of 3 z^2 over half-volt spans
+    coef = np.array([0.7, -1.0, 2.0, 0.5, 0.1])
+    g = quad.basis(z, knots) @ coef
+    np.testing.assert_allclose(quad.slope(z[1:-1], knots, coef),
+                               np.gradient(g, z)[1:-1], atol=1e-3)
+
+
+def test_the_quadratic_map_goes_on_straight_at_its_determined_edge_slopes():
+    """Beyond its fitted range the quadratic map goes on straight (no parabola past the data),
+    at its slope at the range's end, or at the last knot beyond which z went more than once."""
+    from ipmc_model.hysteresis import QuadraticSplineMap as Q
+
+    rows = np.arange(1000)
+    z = np.linspace(0.0, 1.0, 1000)   # one sweep up
+    knots, coef = np.array([0.2, 0.5, 0.999]), np.array([1.0, 1.0, -1.0, 500.0])
+    lower, upper = Q.edge_slopes(z, rows, knots, coef, 10.0, 2)
+    assert lower == 1.0   # at z = 0, below every knot
+    # the top knot has one row above it: its curvature is not followed; the slope is the
+    # spline's at that knot
+    assert upper == pytest.approx(float(Q.slope(np.array([0.999]), knots, coef[:3].tolist()
+                                                + [0.0])[0]))
+    beyond = np.array([-1.0, 2.0])
+    np.testing.assert_allclose(
+        hinge_map(beyond, knots, coef, (0.0, 1.0), (lower, upper), Q),
+        hinge_map(np.array([0.0, 1.0]), knots, coef, basis=Q) + [-lower, upper])
+
+
+def test_a_quadratic_map_model_fits_runs_steps_and_survives_the_file(tmp_path):
+    """``map_basis='quadratic'`` through fit, free run, stepper and the model file; a file
+    written without the key loads with hinges; an unknown basis is refused by name."""
+    _, u = mixed(60.0, 50.0, 3.0, band_hz=(0.02, 0.8), seed=5)
+    y = IpmcPlant(seed=5, dt_s=0.02).run(u).y_mm
+    kw = dict(dt_s=0.02, memory_taus_s=(0.05, 0.45), max_nfev=8)
+    m = GeneralizedPI(map_basis="quadratic", **kw).fit(u, y)
+    assert _rmse(m.simulate(u), y) < 0.1 * np.std(y)
+    st = m.stepper()
+    np.testing.assert_allclose([st.step(v) for v in u[:300]], m.simulate(u[:300]), atol=1e-9)
+    path = save_model(m, tmp_path / "q.json")
+    loaded = load_model(path)
+    assert loaded.map_basis == "quadratic"
+    np.testing.assert_allclose(loaded.simulate(u), m.simulate(u), atol=1e-12)
+    # a file written before the map had a choice: no key, its document checksum re-made
+    from ipmc_model.persistence import DOCUMENT_CHECKSUM, document_sha256
+
+    hinge = GeneralizedPI(**kw).fit(u, y)
+    old = save_model(hinge, tmp_path / "h.json")
+    doc = json.loads(old.read_text())
+    del doc["model"]["params"]["map_basis"]
+    doc[DOCUMENT_CHECKSUM] = document_sha256(doc)
+    old.write_text(json.dumps(doc))
+    loaded = load_model(old)
+    assert loaded.map_basis == "linear"
+    np.testing.assert_allclose(loaded.simulate(u), hinge.simulate(u), atol=1e-12)
+    with pytest.raises(ValueError, match="map_basis must be one of"):
+        GeneralizedPI(map_basis="cubic", **kw).fit(u, y)
