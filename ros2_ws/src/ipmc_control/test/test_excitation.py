@@ -161,6 +161,61 @@ def test_before_its_listeners_match_a_lockstep_excitation_holds_the_sample_unans
         rclpy.try_shutdown(context=context)
 
 
+def test_leaving_the_node_sends_0_v_that_a_reliable_reader_receives_last(monkeypatch):
+    """Every exit goes through ``destroy_node``: it publishes 0 V and waits (at most
+    ``ZERO_ACK_S``) for the reliable readers' acknowledgement. A matched reader gets the 0 V
+    last, right after nonzero commands; with no reader the wait returns at once. (A writer
+    gone before delivery loses the sample on a loaded machine only; in one idle process the
+    delivery is quicker than the destruction.)"""
+    import os
+    import threading
+    import time
+
+    rclpy = pytest.importorskip("rclpy")
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from std_msgs.msg import Float64
+
+    from ipmc_control.nodes.excitation import ZERO_ACK_S, ExcitationNode
+    from ipmc_driver.qos import COMMAND_QOS
+
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(200 + os.getpid() % 30))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    params = [Parameter("kind", value="steps"), Parameter("duration_s", value=6.0),
+              Parameter("hold_s", value=2.0)]
+    try:
+        alone = ExcitationNode(context=context, parameter_overrides=params)
+        t0 = time.perf_counter()
+        alone.destroy_node()
+        assert time.perf_counter() - t0 < 0.5 * ZERO_ACK_S
+        reader = rclpy.create_node("reader", context=context)
+        got: list[float] = []
+        reader.create_subscription(Float64, "/ipmc/command", lambda m: got.append(m.data),
+                                   COMMAND_QOS)
+        node = ExcitationNode(context=context, parameter_overrides=params)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(reader)
+        spin = threading.Thread(target=executor.spin, daemon=True)
+        spin.start()
+        deadline = time.monotonic() + 10.0
+        while node.pub.get_subscription_count() < 1 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert node.pub.get_subscription_count() == 1, "the reader never matched"
+        for v in (1.5, 2.0, 2.5):
+            node.pub.publish(Float64(data=v))
+        node.destroy_node()
+        deadline = time.monotonic() + 5.0
+        while (not got or got[-1] != 0.0) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert got[-4:] == [1.5, 2.0, 2.5, 0.0]
+        executor.shutdown()
+        reader.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
 def test_a_bag_recorded_with_an_experiment_keeps_it(tmp_path):
     """``ipmc bringup --experiment FILE --record BAG`` copies FILE into the bag, where ``ipmc
     diagnose --data BAG`` finds it; nothing is written without a bag folder or experiment."""
