@@ -57,6 +57,7 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.interpolate import BSpline
 from scipy.optimize import least_squares
 from scipy.signal import lfilter
 
@@ -260,38 +261,76 @@ class HingeMap:
     basis = staticmethod(hinge_basis)
     slope = staticmethod(hinge_slope)
     edge_slopes = staticmethod(determined_edge_slopes)
+    knots = staticmethod(place_knots)
+
+    @staticmethod
+    def identity(knots: np.ndarray) -> np.ndarray:
+        """The coefficients of ``g(z) = z``: the joint fit's start."""
+        return np.r_[1.0, np.zeros(knots.size)]
 
 
 class QuadraticSplineMap:
-    """The output map as a quadratic spline of z: ``c_0 z + sum_j c_j max(z - k_j, 0)^2``,
-    its slope continuous and piecewise linear; below the lowest knot (a tenth of the fit's
-    rows at the default knots) it is straight, as the hinges' lowest segment. An IPMC's
-    bending stiffens smoothly with the strain (the negative side of the simulated strip by 3
-    per V); hinges approximate that curvature with kinks, and near 0 V a kink trades with a
-    dead zone's width."""
+    """The output map as a quadratic spline of z: B-splines of degree 2 (SciPy's) on the
+    knots, the outer two the ends of z's range at the fit's start, continued straight beyond
+    them; its slope is continuous. An IPMC's bending stiffens smoothly with the strain (the
+    negative side of the simulated strip by 3 per V); hinges approximate that curvature with
+    kinks, and near 0 V a kink trades with a dead zone's width. B-splines, each nonzero over
+    three knot spans only, stay well conditioned where the knots crowd (a record that dwells
+    at rest): truncated powers ``max(z - k, 0)^2`` there are nearly collinear, and their
+    fits converge several times slower."""
 
     name = "quadratic"
 
     @staticmethod
-    def basis(z: np.ndarray, knots: np.ndarray) -> np.ndarray:
-        return np.column_stack([z, np.maximum(z[:, None] - knots[None, :], 0.0) ** 2])
+    def _vector(knots: np.ndarray) -> np.ndarray:
+        """The B-splines' knot vector: the end knots repeated to degree + 1."""
+        return np.r_[[knots[0]] * 2, knots, [knots[-1]] * 2]
 
-    @staticmethod
-    def slope(z: np.ndarray, knots: np.ndarray, coef: np.ndarray) -> np.ndarray:
-        return coef[0] + 2.0 * np.maximum(z[:, None] - knots[None, :], 0.0) @ coef[1:]
+    @classmethod
+    def _slopes(cls, x: np.ndarray, knots: np.ndarray) -> np.ndarray:
+        """Each B-spline's derivative at ``x`` (within the end knots), (x.size, knots + 1)."""
+        return BSpline(cls._vector(knots), np.eye(knots.size + 1), 2).derivative()(x)
+
+    @classmethod
+    def basis(cls, z: np.ndarray, knots: np.ndarray) -> np.ndarray:
+        lo, hi = knots[0], knots[-1]
+        zc = np.clip(z, lo, hi)
+        B = BSpline.design_matrix(zc, cls._vector(knots), 2).toarray()
+        out = zc != z
+        if out.any():   # straight on beyond the end knots
+            ends = cls._slopes(np.array([lo, hi]), knots)
+            B[out] += (z[out] - zc[out])[:, None] * np.where((z[out] < lo)[:, None],
+                                                              ends[0], ends[1])
+        return B
+
+    @classmethod
+    def slope(cls, z: np.ndarray, knots: np.ndarray, coef: np.ndarray) -> np.ndarray:
+        return cls._slopes(np.clip(z, knots[0], knots[-1]), knots) @ coef
 
     @classmethod
     def edge_slopes(cls, z: np.ndarray, rows: np.ndarray, knots: np.ndarray, coef: np.ndarray,
                     block_rows: float, min_samples: int) -> tuple[float, float]:
         """The slopes beyond the range of ``z``: the spline's slope at the range's ends, or,
-        as :func:`determined_edge_slopes`, at the outermost knot beyond which z goes in
+        as :func:`determined_edge_slopes`, at the outermost inner knot beyond which z goes in
         fewer than ``min_samples`` independent samples (its curvature there is fitted to a
         visit or two)."""
-        above, below = _beyond_counts(z, rows, knots, block_rows)
-        hi = min([float(z.max())] + list(knots[above < min_samples]))
-        lo = max([float(z.min())] + list(knots[below < min_samples]))
+        inner = knots[1:-1]
+        above, below = _beyond_counts(z, rows, inner, block_rows)
+        hi = min([float(z.max())] + list(inner[above < min_samples]))
+        lo = max([float(z.min())] + list(inner[below < min_samples]))
         s = cls.slope(np.array([lo, hi]), knots, coef)
         return float(s[0]), float(s[1])
+
+    @staticmethod
+    def knots(z: np.ndarray, n: int) -> np.ndarray:
+        """``n`` inner knots at quantiles of z (:func:`place_knots`) between its ends."""
+        return np.r_[z.min(), place_knots(z, n), z.max()]
+
+    @classmethod
+    def identity(cls, knots: np.ndarray) -> np.ndarray:
+        """The coefficients of ``g(z) = z`` (the Greville abscissae): the joint fit's start."""
+        t = cls._vector(knots)
+        return (t[1:-2] + t[2:-1]) / 2.0
 
 
 #: The output maps by name (``GeneralizedPI(map_basis=...)``).
@@ -731,7 +770,7 @@ class GeneralizedPI:
             self._best_start(u, y, theta0, bounds)
         coef0 = np.zeros(self.knots_.size + 1 + (2 if self.drift else 0)
                          + self.n_output_channels)
-        coef0[0] = 1.0
+        coef0[:self.knots_.size + 1] = self._map.identity(self.knots_)
         x = self._joint_fit(u, y, np.concatenate([theta0, w0, coef0]), bounds,
                             self.alphas[0], max_nfev)
         return x, self._cross_validate(u, y, x)
@@ -760,7 +799,7 @@ class GeneralizedPI:
         A = np.column_stack([(F - mean) / scale, np.ones(y.size)])
         w = np.linalg.lstsq(A, y, rcond=None)[0]
         z = A @ w
-        knots = place_knots(z, int(self.n_knots))
+        knots = self._map.knots(z, int(self.n_knots))
         B = np.column_stack([self._map.basis(z, knots), np.ones(y.size)])
         resid = y - B @ np.linalg.lstsq(B, y, rcond=None)[0]
         return float(np.var(resid)), theta, mean, scale, w, knots
