@@ -176,9 +176,9 @@ def test_the_core_carries_direction_memory_on_the_channels_the_config_asks():
     r = plant_record({}, 60.0, 4)
     plain = core_model(DiagnosisRecord(r.t_s, r.u_v, r.y_mm, DiagnosisConfig()))
     assert plain.direction_memory_v == () and plain.n_direction_channels == 0
-    assert plain.map_basis == "linear"   # DiagnosisConfig.core_map
-    spline = DiagnosisRecord(r.t_s, r.u_v, r.y_mm, DiagnosisConfig(core_map="quadratic"))
-    assert core_model(spline).map_basis == "quadratic"
+    assert plain.map_basis == "quadratic"   # DiagnosisConfig.core_map
+    hinged = DiagnosisRecord(r.t_s, r.u_v, r.y_mm, DiagnosisConfig(core_map="linear"))
+    assert core_model(hinged).map_basis == "linear"
     rec = DiagnosisRecord(r.t_s, r.u_v, r.y_mm, DiagnosisConfig(core_direction_channels=1))
     core = core_model(rec)
     assert core.direction_memory_v == DEFAULT_DIRECTION_MEMORY_V
