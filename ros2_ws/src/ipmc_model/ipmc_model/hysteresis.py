@@ -323,8 +323,10 @@ class QuadraticSplineMap:
 
     @staticmethod
     def knots(z: np.ndarray, n: int) -> np.ndarray:
-        """``n`` inner knots at quantiles of z (:func:`place_knots`) between its ends."""
-        return np.r_[z.min(), place_knots(z, n), z.max()]
+        """Up to ``n`` inner knots at quantiles of z (:func:`place_knots`) between its ends,
+        each once: where z rests at one value for a tenth of the rows, quantiles coincide, and
+        a B-spline over a repeated knot would be zero on every row."""
+        return np.unique(np.r_[z.min(), place_knots(z, n), z.max()])
 
     @classmethod
     def identity(cls, knots: np.ndarray) -> np.ndarray:

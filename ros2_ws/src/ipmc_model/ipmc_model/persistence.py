@@ -222,10 +222,13 @@ def _gpi_doc(model) -> tuple[str, dict, dict]:
 
 
 def _build_gpi(body: dict, arrays: dict):
-    from .hysteresis import CvResult
+    from .hysteresis import MAP_BASES, CvResult
 
     # a file written before the path-memory or direction-memory channels has none
     m = GeneralizedPI(**{"path_memory_v": (), "direction_memory_v": (), **body["params"]})
+    if m.map_basis not in MAP_BASES:
+        raise ValueError(f"its output map is {m.map_basis!r}; this ipmc-ros knows "
+                         f"{sorted(MAP_BASES)}")
     m.memory_taus_s_ = tuple(float(t) for t in body["memory_taus_s_"])
     for k in GPI_SCALARS:
         setattr(m, k, float(body[k]))

@@ -499,6 +499,19 @@ def test_the_quadratic_spline_holds_a_stiffening_bend_the_hinges_meet_with_kinks
                                np.gradient(g, zs)[1:-1], atol=0.02)
 
 
+def test_the_quadratic_maps_knots_are_each_once_where_z_rests_at_one_value():
+    """A record that rests (z at one value for a third of its rows) puts several quantile
+    knots on that value; the spline keeps each knot once, so every B-spline is nonzero on
+    some row."""
+    from ipmc_model.hysteresis import QuadraticSplineMap as Q
+
+    z = np.r_[np.zeros(3000), np.linspace(0.0, 2.0, 6000)]
+    knots = Q.knots(z, 10)
+    assert np.all(np.diff(knots) > 0) and knots[0] == 0.0 and knots[-1] == 2.0
+    B = Q.basis(z, knots)
+    assert B.shape[1] == knots.size + 1 and np.all(np.abs(B).max(axis=0) > 0)
+
+
 def test_the_quadratic_map_goes_on_straight_at_its_determined_edge_slopes():
     """Beyond its fitted range the quadratic map goes on straight (no parabola past the data),
     at its slope at the range's end, or at the last inner knot beyond which z went in fewer
@@ -548,5 +561,10 @@ def test_a_quadratic_map_model_fits_runs_steps_and_survives_the_file(tmp_path):
     loaded = load_model(old)
     assert loaded.map_basis == "linear"
     np.testing.assert_allclose(loaded.simulate(u), hinge.simulate(u), atol=1e-12)
+    doc["model"]["params"]["map_basis"] = "cubic"   # a newer version's map
+    doc[DOCUMENT_CHECKSUM] = document_sha256(doc)
+    old.write_text(json.dumps(doc))
+    with pytest.raises(ModelFileError, match="its output map is 'cubic'"):
+        load_model(old)
     with pytest.raises(ValueError, match="map_basis must be one of"):
         GeneralizedPI(map_basis="cubic", **kw).fit(u, y)
