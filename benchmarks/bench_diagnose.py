@@ -2,7 +2,7 @@
 time on 30 000 samples. Prints figures; not part of the pass/fail suite.
 
     .venv/bin/python benchmarks/bench_diagnose.py acceptance [--jobs 2] [--seed-offset N]
-        [--core-direction-channels N] [--core-map quadratic|linear]
+        [--core-direction-channels N] [--core-map linear|quadratic]
     .venv/bin/python benchmarks/bench_diagnose.py design [--jobs 2]
     .venv/bin/python benchmarks/bench_diagnose.py timing
     .venv/bin/python benchmarks/bench_diagnose.py second [--jobs 2] [--seed-offset N]
@@ -30,9 +30,9 @@ diagnosis with its clean twin's (same plant, input and seed, no effect): goal <=
 
 ``--core-direction-channels N``: the diagnosis's core model with direction memory on its N
 fastest channels (``DiagnosisConfig.core_direction_channels``; the given model's day too):
-the comparison behind its default of none. ``--core-map linear``: its output map hinges
-instead of the default quadratic spline (``DiagnosisConfig.core_map``), the comparison behind
-that default.
+the comparison behind its default of none. ``--core-map quadratic``: its output map a
+quadratic spline instead of hinges (``DiagnosisConfig.core_map``), the comparison behind that
+default.
 """
 
 from __future__ import annotations
@@ -354,12 +354,12 @@ def main() -> None:
                    help="acceptance and design: the diagnosis's core model with direction "
                         "memory on N channels (DiagnosisConfig.core_direction_channels; "
                         "default 0, none)")
-    p.add_argument("--core-map", default="quadratic", metavar="NAME",
-                   help="acceptance and design: the core model's output map (quadratic: a "
-                        "quadratic spline, the default; linear: hinges)")
+    p.add_argument("--core-map", default="linear", metavar="NAME",
+                   help="acceptance and design: the core model's output map (linear: hinges, "
+                        "the default; quadratic: a quadratic spline)")
     a = p.parse_args()
     for flag, value, default in (("--core-direction-channels", a.core_direction_channels, 0),
-                                 ("--core-map", a.core_map, "quadratic")):
+                                 ("--core-map", a.core_map, "linear")):
         if value != default and a.section in ("timing", "second"):
             p.error(f"{flag} applies to acceptance and design, not {a.section}")
     if a.section == "timing":

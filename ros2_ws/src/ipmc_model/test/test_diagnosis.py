@@ -176,9 +176,9 @@ def test_the_core_carries_direction_memory_on_the_channels_the_config_asks():
     r = plant_record({}, 60.0, 4)
     plain = core_model(DiagnosisRecord(r.t_s, r.u_v, r.y_mm, DiagnosisConfig()))
     assert plain.direction_memory_v == () and plain.n_direction_channels == 0
-    assert plain.map_basis == "quadratic"   # DiagnosisConfig.core_map
-    hinged = DiagnosisRecord(r.t_s, r.u_v, r.y_mm, DiagnosisConfig(core_map="linear"))
-    assert core_model(hinged).map_basis == "linear"
+    assert plain.map_basis == "linear"   # DiagnosisConfig.core_map
+    spline = DiagnosisRecord(r.t_s, r.u_v, r.y_mm, DiagnosisConfig(core_map="quadratic"))
+    assert core_model(spline).map_basis == "quadratic"
     rec = DiagnosisRecord(r.t_s, r.u_v, r.y_mm, DiagnosisConfig(core_direction_channels=1))
     core = core_model(rec)
     assert core.direction_memory_v == DEFAULT_DIRECTION_MEMORY_V
@@ -202,8 +202,8 @@ def test_a_clean_record_has_nothing_and_a_dead_zone_is_found_with_its_width():
     assert abs(width - 0.4) < 0.03
     # its 95 % interval, from the profile of refits around the accepted width, holds the
     # model's width and reaches within the estimate's error of the plant's: the profile
-    # carries the record's noise, not the core's misfit of the plant's structure (0.389 V,
-    # 95 % 0.384-0.398 on this record)
+    # carries the record's noise, not the core's misfit of the plant's structure (0.38 V,
+    # 95 % 0.377-0.398 on this record)
     p = next(r for r in dz.candidates if r.name == "dead_zone").evidence.params
     lo, hi = p["width_ci_v"]
     assert lo <= p["width_v"] == width <= hi and hi - lo < 0.2

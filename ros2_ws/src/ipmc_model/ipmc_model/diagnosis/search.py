@@ -61,8 +61,7 @@ def core_model(rec: DiagnosisRecord) -> GeneralizedPI:
     plays' thresholds follow each channel's swing (``channel_thresholds``): a play its slower
     channel barely crosses moves once, a step in time that takes up a drift or a creep the
     candidates are there to name, and its free run leaves the fit range where the held-out
-    part drives beyond it. Its output map is ``core_map``, a quadratic spline by default: the
-    bending's smooth stiffening without the hinges' kinks."""
+    part drives beyond it. Its output map is ``core_map`` (hinges by default)."""
     taus = rec.config.core_memory_taus_s
     channels = rec.config.core_direction_channels
     direction = ({"direction_memory_v": DEFAULT_DIRECTION_MEMORY_V,
